@@ -1,0 +1,36 @@
+"""Every error and warning keyshape raises on purpose.
+
+The command line turns any :class:`KeyshapeError` into one clear line and exit code 1.
+"""
+
+
+class KeyshapeError(Exception):
+    """Base class: a problem with the user's input or environment, reported as one line."""
+
+
+class InputError(KeyshapeError, ValueError):
+    """A file or argument is missing, unreadable or of the wrong shape."""
+
+
+class NoFaceError(KeyshapeError):
+    """A video in which the tracker found no face at all."""
+
+
+class RigError(KeyshapeError):
+    """A rig that cannot drive the requested key shapes (missing targets, bad topology)."""
+
+
+class MissingDependencyError(KeyshapeError, ImportError):
+    """An optional dependency is not installed; the message says how to install it."""
+
+    def __init__(self, package: str, extra: str | None = None):
+        hint = f'pip install "keyshape[{extra}]"' if extra else f"pip install {package}"
+        super().__init__(f"{package} is required for this feature: {hint}")
+
+
+class DegenerateFrameWarning(UserWarning):
+    """A frame whose alignment is undefined (too few finite points); its pose is NaN."""
+
+
+class ConvergenceWarning(UserWarning):
+    """An iterative solver stopped before its tolerance was met."""
