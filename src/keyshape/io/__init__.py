@@ -1,0 +1,1 @@
+"""Readers and writers for the files artists and engines open: one module per format."""
