@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Install keyshape and everything its tests need on a fresh Debian machine with Python >= 3.11:
+# system packages (apt), the package and its Python dependencies (pip), and the Khronos glTF
+# validator (npm, into tools/node_modules). Safe to run again.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+APT_PACKAGES=(nodejs npm libgl1 libglib2.0-0)
+missing=()
+for pkg in "${APT_PACKAGES[@]}"; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
+done
+if ((${#missing[@]})) && ! { command -v node >/dev/null && command -v npm >/dev/null && [ "${missing[*]}" = "nodejs npm" ]; }; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  echo "setup: apt-get install ${missing[*]}"
+  $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+echo "setup: pip install -e .[test,bench]"
+python -m pip install -q --disable-pip-version-check -e ".[test,bench]"
+command -v pyenv >/dev/null && pyenv rehash || true
+
+echo "setup: npm ci (Khronos glTF validator)"
+npm ci --prefix tools --silent --no-audit --no-fund
+echo "setup: done"

@@ -1,0 +1,117 @@
+"""MediaPipe FaceLandmarker: the only module that imports ``mediapipe``.
+
+Uses the official ``face_landmarker.task`` model vendored in ``keyshape/data`` (Apache-2.0,
+see ``data/NOTICE``), in VIDEO running mode, and converts results to arrays at once.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from ..exceptions import MissingDependencyError
+
+__all__ = ["TrackerOptions", "MediaPipeTracker", "Detection", "default_model_path"]
+
+MODEL_SHA256 = "64184e229b263107bc2b804c6625db1341ff2bb731874b0bcc2fe6544e0bc9ff"
+
+
+def default_model_path() -> Path:
+    """Path of the vendored ``face_landmarker.task``."""
+    return Path(str(resources.files("keyshape").joinpath("data/face_landmarker.task")))
+
+
+@dataclass(frozen=True)
+class TrackerOptions:
+    """Settings of the MediaPipe face landmarker (running mode is always VIDEO)."""
+
+    model_path: Path | None = None
+    num_faces: int = 1
+    min_detection_confidence: float = 0.5
+    min_tracking_confidence: float = 0.5
+    min_presence_confidence: float = 0.5
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One face in one frame.
+
+    points : (478, 3) float, pixels (z on the x scale)
+    scores : (52,) float, ARKit-style blendshape scores
+    matrix : (4, 4) float, facial transformation matrix
+    """
+
+    points: np.ndarray
+    scores: np.ndarray
+    matrix: np.ndarray
+
+
+class MediaPipeTracker:
+    """Context manager around ``FaceLandmarker`` in VIDEO mode.
+
+    ``detect(rgb, timestamp_ms)`` returns a list of :class:`Detection` (empty when no face).
+    """
+
+    def __init__(self, options: TrackerOptions | None = None):
+        self.options = options or TrackerOptions()
+        self._landmarker = None
+        self.blendshape_names: tuple[str, ...] = ()
+
+    def __enter__(self) -> MediaPipeTracker:
+        os.environ.setdefault("GLOG_minloglevel", "2")
+        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+        try:
+            from mediapipe.tasks.python import BaseOptions, vision
+        except ImportError:
+            raise MissingDependencyError("mediapipe") from None
+        opts = self.options
+        model = Path(opts.model_path or default_model_path())
+        self._mp_image = _image_factory()
+        self._landmarker = vision.FaceLandmarker.create_from_options(
+            vision.FaceLandmarkerOptions(
+                base_options=BaseOptions(model_asset_path=str(model)),
+                running_mode=vision.RunningMode.VIDEO,
+                num_faces=opts.num_faces,
+                min_face_detection_confidence=opts.min_detection_confidence,
+                min_face_presence_confidence=opts.min_presence_confidence,
+                min_tracking_confidence=opts.min_tracking_confidence,
+                output_face_blendshapes=True,
+                output_facial_transformation_matrixes=True,
+            )
+        )
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._landmarker is not None:
+            self._landmarker.close()
+            self._landmarker = None
+
+    def detect(self, rgb: np.ndarray, timestamp_ms: int) -> list[Detection]:
+        """Faces in one RGB frame ``(height, width, 3) uint8``."""
+        height, width = rgb.shape[:2]
+        result = self._landmarker.detect_for_video(self._mp_image(rgb), int(timestamp_ms))
+        faces = []
+        for i, landmarks in enumerate(result.face_landmarks):
+            pts = np.array([(p.x, p.y, p.z) for p in landmarks], dtype=float)
+            pts *= (width, height, width)
+            cats = result.face_blendshapes[i] if result.face_blendshapes else []
+            if cats and not self.blendshape_names:
+                self.blendshape_names = tuple(c.category_name for c in cats)
+            scores = np.array([c.score for c in cats], dtype=float)
+            mats = result.facial_transformation_matrixes
+            matrix = np.asarray(mats[i], dtype=float) if mats else np.full((4, 4), np.nan)
+            faces.append(Detection(pts, scores, matrix))
+        return faces
+
+
+def _image_factory():
+    import mediapipe as mp
+
+    def make(rgb: np.ndarray):
+        return mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(rgb))
+
+    return make

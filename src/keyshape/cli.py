@@ -1,0 +1,264 @@
+"""The ``keyshape`` command: one sub-command per pipeline stage, plus ``run`` and ``demo``.
+
+Exit codes: 0 success, 2 usage error, 1 any other error (one line; ``--debug`` for the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from importlib import resources
+from pathlib import Path
+
+from . import __version__
+from .exceptions import InputError, KeyshapeError
+
+DEMO_CLIP = "data/WolfgangLanger_Pexels.mp4"
+
+DESCRIPTION = """\
+Turn a video of an actor's face into animation of any blendshape character
+(Chuang & Bregler, Performance Driven Facial Animation using Blendshape Interpolation).
+
+pipeline:  track VIDEO -> keys (real frames that span the performance)
+           -> solve (non-negative weights per frame) -> retarget (drive a rig, write .glb)
+"""
+
+EPILOG = """\
+examples:
+  keyshape demo                                   # the whole path on the embedded clip
+  keyshape run take.mp4 -o out/                   # track, keys, solve, default character
+  keyshape track take.mp4 -o take.npz
+  keyshape keys take.npz -o keys.json --count 10
+  keyshape solve take.npz keys.json -o weights.csv
+  keyshape retarget weights.csv --rig hero.glb --track take.npz -o hero.glb
+"""
+
+
+def _formatter(prog):
+    return argparse.RawDescriptionHelpFormatter(prog, max_help_position=32)
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}") from None
+    if not 1 <= value <= 64:
+        raise argparse.ArgumentTypeError(f"must be between 1 and 64; got {value}")
+    return value
+
+
+def _add_key_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", choices=("spa", "hull", "spread"), default="spa",
+                   help="key-shape selection: spa = successive projection on the deltas from neutral "
+                        "(default); hull = convex hull of the leading principal components (paper); "
+                        "spread = extreme projections on the principal components (paper)")
+    p.add_argument("--count", type=_count, default=8, metavar="K",
+                   help="key shapes per region (default 8)")
+    p.add_argument("--regions", default="upper-lower", metavar="SCHEME",
+                   help="upper-lower (brows+eyes / mouth+jaw, default), whole, eyes "
+                        "(brows / left eye / right eye / mouth), or a REGIONS.json mapping region "
+                        "names to landmark indices")
+    p.add_argument("--neutral", type=int, default=None, metavar="FRAME",
+                   help="the neutral (resting) frame; default: chosen automatically as the frame "
+                        "closest to the median aligned shape")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="keyshape", description=DESCRIPTION, epilog=EPILOG,
+                                     formatter_class=_formatter)
+    parser.add_argument("--version", action="version", version=f"keyshape {__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="show the full traceback on errors")
+    common.add_argument("-q", "--quiet", action="store_true", help="no progress bars or summaries")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
+
+    p = sub.add_parser("track", parents=[common], formatter_class=_formatter,
+                       help="track the face in a video (MediaPipe, 478 landmarks)",
+                       description="Track the face in every frame of VIDEO with MediaPipe's "
+                                   "FaceLandmarker (vendored model). Writes points (pixels), fps, "
+                                   "the 52 ARKit-style scores and the head matrix to TRACK.npz; "
+                                   "frames without a face are NaN.")
+    p.add_argument("video", type=Path, help="video file (anything PyAV opens)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="TRACK.npz")
+
+    p = sub.add_parser("keys", parents=[common], formatter_class=_formatter,
+                       help="discover key shapes (real frames) per region",
+                       description="Choose K real frames per face region that span the performance "
+                                   "(the key shapes an artist will sculpt on the character).")
+    p.add_argument("track", type=Path, help="track file (.npz with points and fps)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="KEYS.json")
+    _add_key_options(p)
+
+    p = sub.add_parser("solve", parents=[common], formatter_class=_formatter,
+                       help="non-negative weights of every frame on the key shapes",
+                       description="Write every frame as neutral + a non-negative blend of the key "
+                                   "shapes' deltas, per region (exact batched NNLS).")
+    p.add_argument("track", type=Path, help="track file (.npz)")
+    p.add_argument("keys", type=Path, help="key file from `keyshape keys`")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="WEIGHTS.csv")
+
+    p = sub.add_parser("retarget", parents=[common], formatter_class=_formatter,
+                       help="drive a rig with the weights and write a binary glTF",
+                       description="Apply the weights to a rig whose targets are named after the "
+                                   "key shapes; write the rig with a morph-weight animation.")
+    p.add_argument("weights", type=Path, help="weights CSV from `keyshape solve`")
+    p.add_argument("--rig", type=Path, required=True,
+                   help="folder of OBJs (neutral.obj + <key name>.obj) or a .glb/.gltf with "
+                        "morph targets named after the keys")
+    p.add_argument("--track", type=Path, default=None,
+                   help="track file: also animate the head rotation")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="ANIM.glb")
+
+    p = sub.add_parser("run", parents=[common], formatter_class=_formatter,
+                       help="all stages: video -> track, keys, weights, animated .glb",
+                       description="Track, discover keys, solve and retarget in one go. Without "
+                                   "--rig the character is a face mesh of the actor's own neutral "
+                                   "landmarks with the key frames as its targets.")
+    p.add_argument("video", type=Path)
+    p.add_argument("--rig", type=Path, default=None, help="rig with targets named after the keys")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
+    _add_key_options(p)
+
+    p = sub.add_parser("demo", parents=[common], formatter_class=_formatter,
+                       help="run the whole path on the embedded real clip",
+                       description="Run the whole pipeline on the embedded clip "
+                                   "(WolfgangLanger_Pexels.mp4, 472 frames) onto the default "
+                                   "character.")
+    p.add_argument("-o", "--output", type=Path, default=Path("keyshape-demo"), metavar="OUTDIR",
+                   help="output folder (default ./keyshape-demo)")
+    return parser
+
+
+def _say(args, text: str) -> None:
+    if not args.quiet:
+        print(text, flush=True)
+
+
+def cmd_track(args) -> None:
+    from .capture import track_video
+    from .io.track import save_track
+
+    track = track_video(args.video, progress=not args.quiet)
+    save_track(track, args.output)
+    _say(args, f"{args.output}: {track.n_frames} frames, face in {int(track.valid.sum())} "
+               f"({100 * track.valid.mean():.1f} %), {track.fps:g} fps")
+
+
+def cmd_keys(args) -> None:
+    from .io.keys_json import save_keys
+    from .io.track import load_track
+    from .pipeline import discover_keys
+
+    track = load_track(args.track)
+    keys = discover_keys(track, regions=args.regions, n_keys=args.count, method=args.method,
+                         neutral=args.neutral, take=args.track.name)
+    save_keys(keys, args.output)
+    _say(args, f"{args.output}: neutral frame {keys.neutral_frame}; " + _describe_keys(keys))
+
+
+def _describe_keys(keys) -> str:
+    parts = [f"{r}: frames {', '.join(str(keys.frames[k]) for k in keys.keys_of(r))}"
+             for r in keys.regions]
+    return "; ".join(parts)
+
+
+def cmd_solve(args) -> None:
+    from .io.keys_json import load_keys
+    from .io.track import load_track
+    from .io.weights_csv import save_weights_csv
+    from .pipeline import solve_take
+
+    track = load_track(args.track)
+    keys = load_keys(args.keys)
+    solved = solve_take(track, keys)
+    save_weights_csv(solved.weights, args.output)
+    _say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys")
+
+
+def cmd_retarget(args) -> None:
+    from .io.gltf import write_glb
+    from .io.track import load_track
+    from .io.weights_csv import load_weights_csv
+    from .pipeline import head_poses
+    from .retarget import Mapping, retarget
+    from .rig import load_rig
+
+    weights = load_weights_csv(args.weights)
+    rig = load_rig(args.rig)
+    poses = None
+    if args.track is not None:
+        track = load_track(args.track)
+        if track.n_frames != weights.n_frames:
+            raise InputError(f"{args.track}: has {track.n_frames} frames but {args.weights} has "
+                             f"{weights.n_frames}")
+        poses = head_poses(track)
+    anim = retarget(weights, Mapping.by_name(weights.names, rig.names))
+    write_glb(args.output, rig, anim, poses=poses)
+    _say(args, f"{args.output}: {rig.n_targets} targets animated over {anim.n_frames} frames")
+
+
+def _run(args, video: Path) -> None:
+    from .capture import track_video
+    from .io.gltf import write_glb
+    from .io.keys_json import save_keys
+    from .io.track import save_track
+    from .io.weights_csv import save_weights_csv
+    from .pipeline import default_character, discover_keys, solve_take
+    from .retarget import Mapping, retarget
+    from .rig import load_rig
+
+    start = time.perf_counter()
+    track = track_video(video, progress=not args.quiet)
+    keys = discover_keys(track, regions=args.regions, n_keys=args.count, method=args.method,
+                         neutral=args.neutral, take=video.name)
+    solved = solve_take(track, keys)
+    rig = load_rig(args.rig) if args.rig is not None else default_character(keys)
+    anim = retarget(solved.weights, Mapping.by_name(keys.names, rig.names))
+    out = args.output
+    save_track(track, out / "track.npz")
+    save_keys(keys, out / "keys.json")
+    save_weights_csv(solved.weights, out / "weights.csv")
+    write_glb(out / "animation.glb", rig, anim, poses=solved.poses)
+    _say(args, f"{video.name}: {track.n_frames} frames, face in {100 * track.valid.mean():.1f} %, "
+               f"neutral frame {keys.neutral_frame}")
+    _say(args, f"keys: {_describe_keys(keys)}")
+    _say(args, f"wrote {out}/track.npz, keys.json, weights.csv, animation.glb "
+               f"in {time.perf_counter() - start:.1f} s")
+
+
+def cmd_run(args) -> None:
+    _run(args, args.video)
+
+
+def cmd_demo(args) -> None:
+    args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
+    clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))
+    _run(args, clip)
+
+
+COMMANDS = {"track": cmd_track, "keys": cmd_keys, "solve": cmd_solve, "retarget": cmd_retarget,
+            "run": cmd_run, "demo": cmd_demo}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``keyshape``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        COMMANDS[args.verb](args)
+    except KeyboardInterrupt:
+        print("keyshape: interrupted", file=sys.stderr)
+        return 130
+    except KeyshapeError as exc:
+        if args.debug:
+            raise
+        print(f"keyshape: error: {exc}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # one clear line for anything unexpected too
+        if args.debug:
+            raise
+        print(f"keyshape: error: {exc.__class__.__name__}: {exc} (run with --debug for details)",
+              file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,113 @@
+"""The paper's method end to end, as a few calls over the stage modules.
+
+``discover_keys`` (align + select), ``solve_take`` (align onto the key set's neutral + solve)
+and ``default_character`` glue the stages the way the command line uses them; each stage
+stays usable on its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .align import align, choose_neutral
+from .containers import KeyShapes, Poses, Rig, Track, Weights
+from .decompose import solve_weights
+from .exceptions import InputError
+from .keyshapes import find_keyshapes
+from .schemes import face_triangles, resolve_regions, stable_points
+
+__all__ = ["discover_keys", "solve_take", "default_character", "Solved"]
+
+
+def _check_neutral(track: Track, neutral: int | None) -> int:
+    if neutral is None:
+        return choose_neutral(track, stable=stable_points(track.n_landmarks))
+    if not 0 <= neutral < track.n_frames:
+        raise InputError(f"--neutral must be a frame in 0..{track.n_frames - 1}; got {neutral}")
+    if not track.valid[neutral]:
+        raise InputError(f"--neutral frame {neutral} has no face; choose a frame where the face was found")
+    return neutral
+
+
+def discover_keys(track: Track, *, regions: str | Path = "upper-lower", n_keys: int = 8,
+                  method: str = "spa", neutral: int | None = None, take: str = "") -> KeyShapes:
+    """Key shapes of one take: pick the neutral frame, align onto it, select real frames.
+
+    Parameters
+    ----------
+    track : Track in image coordinates
+    regions : region scheme name or REGIONS.json path (see :func:`keyshape.schemes.resolve_regions`)
+    n_keys : key shapes per region
+    method : "spa", "hull" or "spread"
+    neutral : the neutral frame, or None to choose it automatically
+        (:func:`keyshape.align.choose_neutral`: the frame closest to the median aligned shape)
+    take : a name for the take, recorded with every key
+    """
+    if track.valid.sum() < 2:
+        raise InputError(f"a track needs at least 2 frames with a face; this one has {int(track.valid.sum())}")
+    region_map = resolve_regions(regions, track.n_landmarks)
+    stable = stable_points(track.n_landmarks)
+    neutral = _check_neutral(track, neutral)
+    aligned, _ = align(track, reference=track.points[neutral], stable=stable)
+    keys = find_keyshapes(aligned, regions=region_map, n_keys=n_keys, method=method,
+                          neutral_frame=neutral, stable=stable)
+    if take:
+        keys = _with_take(keys, take)
+    return keys
+
+
+def _with_take(keys: KeyShapes, take: str) -> KeyShapes:
+    return KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames, keys.key_regions,
+                     keys.regions, (take,) * keys.n_keys, keys.neutral_frame, take, keys.method,
+                     keys.stable)
+
+
+@dataclass(frozen=True)
+class Solved:
+    """A take decomposed on a key set: weights ``(n_frames, n_keys)`` and the head poses."""
+
+    weights: Weights
+    poses: Poses
+    aligned: Track
+
+
+def solve_take(track: Track, keys: KeyShapes, **options) -> Solved:
+    """Align ``track`` onto the key set's neutral shape and solve the weights.
+
+    ``options`` go to :func:`keyshape.decompose.solve_weights`.
+    """
+    if track.n_landmarks != keys.n_landmarks or track.n_dims != keys.n_dims:
+        raise InputError(
+            f"the track has {track.n_landmarks} landmarks in {track.n_dims}D but the key set was made "
+            f"from {keys.n_landmarks} in {keys.n_dims}D"
+        )
+    stable = keys.stable if keys.stable is not None else stable_points(track.n_landmarks)
+    aligned, poses = align(track, reference=keys.neutral, stable=stable)
+    return Solved(solve_weights(aligned, keys, **options), poses, aligned)
+
+
+def head_poses(track: Track) -> Poses:
+    """Head motion of a take relative to its own automatically chosen neutral frame."""
+    stable = stable_points(track.n_landmarks)
+    neutral = choose_neutral(track, stable=stable)
+    return align(track, reference=track.points[neutral], stable=stable)[1]
+
+
+def default_character(keys: KeyShapes) -> Rig:
+    """The demo's character: a face mesh of the actor's neutral landmarks, one target per key.
+
+    Needs a 3D MediaPipe track (the mesh is MediaPipe's face tessellation).
+    """
+    from .rig import rig_from_keyshapes
+
+    if keys.n_landmarks not in (468, 478) or keys.n_dims != 3:
+        raise InputError("the default character needs a 3D MediaPipe track; give a rig with --rig")
+    return rig_from_keyshapes(keys, face_triangles())
+
+
+def weights_or_zero(weights: Weights) -> np.ndarray:
+    """(n_frames, n_channels) float: weights with frames that have no estimate at 0 (neutral)."""
+    return np.nan_to_num(weights.values)

@@ -1,0 +1,142 @@
+"""Landmark schemes: which landmark is which, how the face splits into regions.
+
+Two schemes are known by landmark count:
+
+* **MediaPipe 478** (468 without irises): tables derived from MediaPipe's
+  ``FaceLandmarksConnections`` by ``tools/gen_mediapipe_scheme.py`` into
+  ``data/mediapipe478.json`` (contours, regions, stable points, mesh triangles).
+* **iBUG 68** (Multi-PIE 68-point markup, used by dlib, OpenFace, face-alignment):
+  the standard index ranges (jaw 0–16, brows 17–26, nose 27–35, eyes 36–47, mouth 48–67).
+
+Any other landmark count works with ``whole`` or a user REGIONS.json, and aligns on all points.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .exceptions import InputError
+
+__all__ = ["REGION_SCHEMES", "resolve_regions", "stable_points", "face_triangles", "mediapipe_scheme"]
+
+REGION_SCHEMES = ("upper-lower", "whole", "eyes")
+
+_IBUG68 = {
+    "contours": {
+        "jaw": list(range(0, 17)),
+        "right_eyebrow": list(range(17, 22)),
+        "left_eyebrow": list(range(22, 27)),
+        "nose": list(range(27, 36)),
+        "right_eye": list(range(36, 42)),
+        "left_eye": list(range(42, 48)),
+        "lips": list(range(48, 68)),
+    },
+    "stable": [36, 39, 42, 45, 27, 28, 29, 30, 0, 16],
+}
+
+
+@cache
+def mediapipe_scheme() -> dict:
+    """The MediaPipe face-mesh tables (contours, region schemes, stable ids, triangles)."""
+    text = resources.files("keyshape").joinpath("data/mediapipe478.json").read_text()
+    return json.loads(text)
+
+
+def _ibug_regions() -> dict[str, list[int]]:
+    c = _IBUG68["contours"]
+    brows = c["right_eyebrow"] + c["left_eyebrow"]
+    mouth = c["lips"] + c["jaw"][4:13]
+    return {
+        "upper-lower": {"upper": brows + c["right_eye"] + c["left_eye"], "lower": mouth},
+        "eyes": {"brows": brows, "left_eye": c["left_eye"], "right_eye": c["right_eye"], "mouth": mouth},
+        "whole": {"whole": list(range(68))},
+    }
+
+
+def _builtin_regions(name: str, n_landmarks: int) -> dict[str, list[int]]:
+    if name == "whole" and n_landmarks not in (468, 478, 68):
+        return {"whole": list(range(n_landmarks))}
+    if n_landmarks in (468, 478):
+        return mediapipe_scheme()["region_schemes"][name]
+    if n_landmarks == 68:
+        return _ibug_regions()[name]
+    raise InputError(
+        f"region scheme {name!r} needs a MediaPipe (468/478) or iBUG (68) track; this track has "
+        f"{n_landmarks} landmarks: use --regions whole or a REGIONS.json"
+    )
+
+
+def _load_regions_file(path: Path) -> dict[str, list[int]]:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: regions file not found") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable JSON file ({exc})") from None
+    if not isinstance(data, dict) or not data or not all(isinstance(v, list) for v in data.values()):
+        raise InputError(f"{path}: expected a JSON object mapping region names to lists of landmark indices")
+    return data
+
+
+def resolve_regions(spec: str | Path, n_landmarks: int) -> dict[str, np.ndarray]:
+    """Region name → landmark indices for a scheme name or a REGIONS.json path.
+
+    Parameters
+    ----------
+    spec : "upper-lower", "whole", "eyes", or the path of a JSON object ``{"region": [indices]}``
+    n_landmarks : int, the track's landmark count
+
+    Returns
+    -------
+    dict str -> (n_region_landmarks,) int, each sorted, unique and in range
+
+    Examples
+    --------
+    >>> sorted(resolve_regions("upper-lower", 478))
+    ['lower', 'upper']
+    >>> resolve_regions("whole", 5)["whole"]
+    array([0, 1, 2, 3, 4])
+    """
+    spec_s = str(spec)
+    raw = _builtin_regions(spec_s, n_landmarks) if spec_s in REGION_SCHEMES else _load_regions_file(Path(spec_s))
+    regions = {}
+    for name, idx in raw.items():
+        arr = np.unique(np.asarray(idx, dtype=int))
+        if arr.size == 0 or arr.min() < 0 or arr.max() >= n_landmarks:
+            raise InputError(
+                f"region {name!r} of {spec_s}: indices must be in 0..{n_landmarks - 1} and non-empty; "
+                f"got {arr.size} indices up to {arr.max() if arr.size else None}"
+            )
+        regions[str(name)] = arr
+    return regions
+
+
+def stable_points(n_landmarks: int) -> np.ndarray:
+    """Landmarks that barely move with expression (eye corners, nose bridge, temples).
+
+    Returns (n_stable,) int; all landmarks for unknown schemes.
+    """
+    if n_landmarks in (468, 478):
+        return np.array(sorted(i for ids in mediapipe_scheme()["stable"].values() for i in ids))
+    if n_landmarks == 68:
+        return np.array(_IBUG68["stable"])
+    return np.arange(n_landmarks)
+
+
+def eye_corners(n_landmarks: int) -> tuple[int, int] | None:
+    """Outer eye corners (right, left) used for the inter-ocular distance, or None."""
+    if n_landmarks in (468, 478):
+        return 33, 263
+    if n_landmarks == 68:
+        return 36, 45
+    return None
+
+
+def face_triangles() -> np.ndarray:
+    """(n_faces, 3) int triangles of MediaPipe's face mesh over the first 468 landmarks."""
+    return np.array(mediapipe_scheme()["triangles"], dtype=np.int64)
