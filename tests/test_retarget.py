@@ -1,0 +1,102 @@
+import numpy as np
+import pytest
+
+from keyshape.containers import Rig, Weights
+from keyshape.exceptions import InputError, RigError
+from keyshape.retarget import Mapping, retarget
+
+
+@pytest.fixture
+def weights():
+    rng = np.random.default_rng(0)
+    return Weights(rng.random((12, 3)), ("upper_00", "lower_00", "lower_01"), fps=25)
+
+
+def test_identity_mapping_is_a_no_op(weights):
+    out = retarget(weights, Mapping.by_name(weights.names, weights.names))
+    np.testing.assert_array_equal(out.values, weights.values)
+    assert out.names == weights.names and out.fps == weights.fps
+
+
+def test_by_name_follows_rig_order(weights):
+    rig_names = ("lower_01", "upper_00", "lower_00")
+    out = retarget(weights, Mapping.by_name(weights, rig_names))
+    assert out.names == rig_names
+    np.testing.assert_array_equal(out.values, weights.values[:, [2, 0, 1]])
+
+
+def test_by_name_accepts_a_rig():
+    rig = Rig(np.eye(3), [[0, 1, 2]], np.zeros((2, 3, 3)), ("a", "b"))
+    assert Mapping.by_name(["b", "a"], rig).targets == ("a", "b")
+
+
+def test_missing_names_error_lists_them(weights):
+    with pytest.raises(RigError, match=r"no same-named rig target: \['lower_00', 'lower_01'\]"):
+        Mapping.by_name(weights.names, ["upper_00", "Angry"], allow_extra=True)
+
+
+def test_extra_targets_error_lists_them_unless_allowed(weights):
+    targets = weights.names + ("Angry", "Sad")
+    with pytest.raises(RigError, match=r"no same-named key: \['Angry', 'Sad'\].*allow_extra=True"):
+        Mapping.by_name(weights.names, targets)
+    out = retarget(weights, Mapping.by_name(weights.names, targets, allow_extra=True))
+    np.testing.assert_array_equal(out.values[:, :3], weights.values)
+    np.testing.assert_array_equal(out.values[:, 3:], 0.0)
+
+
+def test_from_dict_gains(weights):
+    mapping = Mapping.from_dict(
+        {"upper_00": {"Surprised": 1.0}, "lower_01": {"Sad": 0.5, "Angry": 2.0}}
+    )
+    assert mapping.sources == ("upper_00", "lower_01")
+    assert mapping.targets == ("Surprised", "Sad", "Angry")
+    out = retarget(weights, mapping)
+    np.testing.assert_allclose(out.values[:, 0], weights.values[:, 0])
+    np.testing.assert_allclose(out.values[:, 1], 0.5 * weights.values[:, 2])
+    np.testing.assert_allclose(out.values[:, 2], 2.0 * weights.values[:, 2])
+    assert Mapping.from_dict(mapping.to_dict()).matrix.tolist() == mapping.matrix.tolist()
+
+
+def test_from_dict_sums_keys_driving_one_target(weights):
+    mapping = Mapping.from_dict({"lower_00": {"jaw": 1.0}, "lower_01": {"jaw": 1.0}})
+    out = retarget(weights, mapping)
+    np.testing.assert_allclose(out.values[:, 0], weights.values[:, 1] + weights.values[:, 2])
+
+
+def test_from_dict_in_rig_order_and_unknown_targets():
+    mapping = Mapping.from_dict({"k": {"Sad": 1.0}}, targets=["Angry", "Surprised", "Sad"])
+    assert mapping.matrix[:, 0].tolist() == [0.0, 0.0, 1.0]
+    with pytest.raises(RigError, match=r"does not have: \['Happy'\]"):
+        Mapping.from_dict({"k": {"Happy": 1.0}}, targets=["Angry", "Sad"])
+
+
+@pytest.mark.parametrize("gain", [-1.0, float("nan"), "much"])
+def test_bad_gains_are_rejected(gain):
+    with pytest.raises(InputError, match="gain for key 'k' -> target 't'"):
+        Mapping.from_dict({"k": {"t": gain}})
+
+
+def test_matrix_shape_and_sign_are_checked():
+    with pytest.raises(InputError, match=r"shape \(n_targets, n_keys\) = \(1, 2\); got \(2, 1\)"):
+        Mapping(np.ones((2, 1)), ("a", "b"), ("t",))
+    with pytest.raises(InputError, match=">= 0"):
+        Mapping(-np.ones((1, 1)), ("a",), ("t",))
+
+
+def test_nan_frames_become_neutral(weights):
+    values = weights.values.copy()
+    values[3] = np.nan
+    out = retarget(Weights(values, weights.names, weights.fps), Mapping.by_name(weights, weights))
+    np.testing.assert_array_equal(out.values[3], 0.0)
+    assert np.isfinite(out.values).all()
+
+
+def test_weights_missing_mapping_keys(weights):
+    with pytest.raises(RigError, match=r"do not have: \['mouth_02'\]"):
+        retarget(weights, Mapping.from_dict({"mouth_02": {"Sad": 1.0}}))
+
+
+def test_matrix_is_read_only(weights):
+    mapping = Mapping.by_name(weights, weights)
+    with pytest.raises(ValueError):
+        mapping.matrix[0, 0] = 2.0
