@@ -5,15 +5,19 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
-APT_PACKAGES=(nodejs npm libgl1 libglib2.0-0)
+# System libraries (OpenCV/MediaPipe need libGL and GLib); Node.js + npm for the validator.
+APT_PACKAGES=(libgl1 libglib2.0-0)
+command -v node >/dev/null || APT_PACKAGES+=(nodejs)
+command -v npm >/dev/null || APT_PACKAGES+=(npm)
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do
   dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
 done
-if ((${#missing[@]})) && ! { command -v node >/dev/null && command -v npm >/dev/null && [ "${missing[*]}" = "nodejs npm" ]; }; then
+if ((${#missing[@]})); then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   echo "setup: apt-get install ${missing[*]}"
-  $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
 fi
 
 echo "setup: pip install -e .[test,bench]"

@@ -6,7 +6,9 @@ see ``data/NOTICE``), in VIDEO running mode, and converts results to arrays at o
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -71,18 +73,20 @@ class MediaPipeTracker:
         opts = self.options
         model = Path(opts.model_path or default_model_path())
         self._mp_image = _image_factory()
-        self._landmarker = vision.FaceLandmarker.create_from_options(
-            vision.FaceLandmarkerOptions(
-                base_options=BaseOptions(model_asset_path=str(model)),
-                running_mode=vision.RunningMode.VIDEO,
-                num_faces=opts.num_faces,
-                min_face_detection_confidence=opts.min_detection_confidence,
-                min_face_presence_confidence=opts.min_presence_confidence,
-                min_tracking_confidence=opts.min_tracking_confidence,
-                output_face_blendshapes=True,
-                output_facial_transformation_matrixes=True,
+        with _quiet_native_stderr():
+            self._landmarker = vision.FaceLandmarker.create_from_options(
+                vision.FaceLandmarkerOptions(
+                    base_options=BaseOptions(model_asset_path=str(model)),
+                    running_mode=vision.RunningMode.VIDEO,
+                    num_faces=opts.num_faces,
+                    min_face_detection_confidence=opts.min_detection_confidence,
+                    min_face_presence_confidence=opts.min_presence_confidence,
+                    min_tracking_confidence=opts.min_tracking_confidence,
+                    output_face_blendshapes=True,
+                    output_facial_transformation_matrixes=True,
+                )
             )
-        )
+        self._calls = 0
         return self
 
     def __exit__(self, *exc) -> None:
@@ -93,7 +97,10 @@ class MediaPipeTracker:
     def detect(self, rgb: np.ndarray, timestamp_ms: int) -> list[Detection]:
         """Faces in one RGB frame ``(height, width, 3) uint8``."""
         height, width = rgb.shape[:2]
-        result = self._landmarker.detect_for_video(self._mp_image(rgb), int(timestamp_ms))
+        quiet = _quiet_native_stderr() if self._calls < 2 else contextlib.nullcontext()
+        with quiet:  # the first inferences log start-up notes from C++
+            result = self._landmarker.detect_for_video(self._mp_image(rgb), int(timestamp_ms))
+        self._calls += 1
         faces = []
         for i, landmarks in enumerate(result.face_landmarks):
             pts = np.array([(p.x, p.y, p.z) for p in landmarks], dtype=float)
@@ -106,6 +113,21 @@ class MediaPipeTracker:
             matrix = np.asarray(mats[i], dtype=float) if mats else np.full((4, 4), np.nan)
             faces.append(Detection(pts, scores, matrix))
         return faces
+
+
+@contextlib.contextmanager
+def _quiet_native_stderr():
+    """Silence MediaPipe's C++ start-up logging (written straight to file descriptor 2)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def _image_factory():

@@ -1,0 +1,93 @@
+import json
+
+import numpy as np
+import pytest
+
+from keyshape.containers import KeyShapes, Track, Weights
+from keyshape.exceptions import InputError
+from keyshape.io.keys_json import load_keys, save_keys
+from keyshape.io.track import load_track, save_track
+from keyshape.io.weights_csv import load_weights_csv, save_weights_csv
+
+
+def _track(n=5, l=4, d=3):
+    pts = np.random.default_rng(1).normal(size=(n, l, d)) * 100
+    pts[2] = np.nan
+    return Track(pts, 23.976, (640, 360), np.random.default_rng(2).random((n, 52)),
+                 tuple(f"s{i}" for i in range(52)), np.tile(np.eye(4), (n, 1, 1)))
+
+
+def test_track_round_trip(tmp_path):
+    track = _track()
+    back = load_track(save_track(track, tmp_path / "t.npz"))
+    np.testing.assert_array_equal(back.points, track.points)
+    assert back.fps == track.fps and back.image_size == (640, 360)
+    assert back.blendshape_names == track.blendshape_names
+    np.testing.assert_array_equal(back.valid, [True, True, False, True, True])
+
+
+def test_track_from_other_tools_needs_only_points_and_fps(tmp_path):
+    np.savez(tmp_path / "other.npz", points=np.zeros((3, 68, 2)), fps=30)
+    assert load_track(tmp_path / "other.npz").n_landmarks == 68
+
+
+@pytest.mark.parametrize("arrays, message", [
+    ({"points": np.zeros((3, 4))}, "lacks \\['fps'\\]"),
+    ({"points": np.zeros((3, 4, 5)), "fps": 30}, "points must have shape"),
+    ({"points": np.zeros((3, 4, 2)), "fps": -1}, "fps must be a positive number"),
+])
+def test_bad_track_files(tmp_path, arrays, message):
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(InputError, match=message):
+        load_track(tmp_path / "bad.npz")
+
+
+def test_not_an_npz(tmp_path):
+    (tmp_path / "x.npz").write_text("hello")
+    with pytest.raises(InputError, match="x.npz: not a readable .npz"):
+        load_track(tmp_path / "x.npz")
+
+
+def test_weights_csv_round_trip(tmp_path):
+    values = np.random.default_rng(0).random((50, 3))
+    values[7] = np.nan
+    w = Weights(values, ("upper_00", "upper_01", "lower_00"), 23.976)
+    back = load_weights_csv(save_weights_csv(w, tmp_path / "w.csv"))
+    assert back.names == w.names
+    np.testing.assert_allclose(back.values, w.values, atol=5e-7)
+    assert back.fps == pytest.approx(23.976, rel=1e-5)
+    header = (tmp_path / "w.csv").read_text().splitlines()[0]
+    assert header == "frame,time,upper_00,upper_01,lower_00"
+
+
+def test_keys_round_trip(tmp_path):
+    neutral = np.arange(12, dtype=float).reshape(4, 3)
+    deltas = np.zeros((2, 4, 3))
+    deltas[0, :2] = 1.5
+    deltas[1, 2:] = -2.0
+    keys = KeyShapes(neutral, deltas, ("upper_00", "lower_00"), np.array([5, 9]), ("upper", "lower"),
+                     {"upper": [0, 1], "lower": [2, 3]}, ("a.npz", "a.npz"), 3, "a.npz", "spa", [0, 1])
+    path = save_keys(keys, tmp_path / "k.json")
+    data = json.loads(path.read_text())
+    assert data["regions"]["lower"]["keys"] == [{"name": "lower_00", "take": "a.npz", "frame": 9}]
+    back = load_keys(path)
+    np.testing.assert_allclose(back.deltas, keys.deltas)
+    assert back.names == keys.names and back.frames.tolist() == [5, 9] and back.neutral_frame == 3
+
+
+def test_not_a_key_file(tmp_path):
+    (tmp_path / "k.json").write_text("{}")
+    with pytest.raises(InputError, match="not a keyshape key file"):
+        load_keys(tmp_path / "k.json")
+
+
+def test_failed_write_leaves_nothing(tmp_path):
+    class Boom(Weights):
+        @property
+        def times(self):
+            raise RuntimeError("disk full")
+
+    w = Boom(np.zeros((2, 1)), ("a",), 30)
+    with pytest.raises(RuntimeError):
+        save_weights_csv(w, tmp_path / "w.csv")
+    assert list(tmp_path.iterdir()) == []
