@@ -9,15 +9,14 @@ per target, so that ``V(t) = N + Σ w_i(t) (T_i − N)`` (the paper's Eq. 1).
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .containers import KeyShapes, Rig
 from .exceptions import InputError, RigError
+from .io.atomic import atomic_path
 
 __all__ = ["load_rig", "rig_from_keyshapes", "save_obj_folder", "read_obj"]
 
@@ -192,14 +191,8 @@ def save_obj_folder(rig: Rig, folder) -> Path:
 def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in vertices]
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as out:
-            out.write("# written by keyshape\n" + "\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        tmp.write_text("# written by keyshape\n" + "\n".join(lines) + "\n", encoding="utf-8")
 
 
 # --------------------------------------------------------------------------- default character

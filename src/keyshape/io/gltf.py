@@ -19,8 +19,6 @@ The Khronos Group, *glTF 2.0 Specification*, sections 3.7.2.2 (morph targets) an
 from __future__ import annotations
 
 import base64
-import os
-import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -30,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, RigError
+from .atomic import atomic_path
 
 __all__ = ["write_glb", "read_glb_animation", "read_rig", "GlbAnimation"]
 
@@ -109,7 +108,9 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
     _check_write_args(path, rig, weights, poses)
     rotations = None if poses is None else _pose_quaternions(poses)
     document = _build_document(rig, weights, rotations)
-    _write_atomic(path, b"".join(document.save_to_bytes()))
+    data = b"".join(document.save_to_bytes())
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
     return path
 
 
@@ -129,19 +130,6 @@ def _check_write_args(path: Path, rig: Rig, weights: Weights, poses: Poses | Non
         raise InputError(
             f"poses must have one frame per weights frame ({weights.n_frames}); got {poses.n_frames}"
         )
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temporary sibling of ``path`` and move it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as out:
-            out.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _pose_quaternions(poses: Poses) -> np.ndarray:
