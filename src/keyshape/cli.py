@@ -12,6 +12,7 @@ from importlib import resources
 from pathlib import Path
 
 from . import __version__
+from .commands import discover
 from .exceptions import InputError, KeyshapeError
 
 DEMO_CLIP = "data/WolfgangLanger_Pexels.mp4"
@@ -109,6 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "morph targets named after the keys")
     p.add_argument("--track", type=Path, default=None,
                    help="track file: also animate the head rotation")
+    p.add_argument("--allow-extra", action="store_true",
+                   help="let rig targets that no key drives stay at 0 (default: an error listing them)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="ANIM.glb")
 
     p = sub.add_parser("run", parents=[common], formatter_class=_formatter,
@@ -128,6 +131,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "character.")
     p.add_argument("-o", "--output", type=Path, default=Path("keyshape-demo"), metavar="OUTDIR",
                    help="output folder (default ./keyshape-demo)")
+
+    for module in discover():
+        p = sub.add_parser(module.VERB, parents=[common], formatter_class=_formatter,
+                           help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP))
+        module.add_arguments(p)
+        p.set_defaults(handler=module.run)
     return parser
 
 
@@ -194,7 +203,7 @@ def cmd_retarget(args) -> None:
             raise InputError(f"{args.track}: has {track.n_frames} frames but {args.weights} has "
                              f"{weights.n_frames}")
         poses = head_poses(track)
-    anim = retarget(weights, Mapping.by_name(weights.names, rig.names))
+    anim = retarget(weights, Mapping.by_name(weights.names, rig.names, allow_extra=args.allow_extra))
     write_glb(args.output, rig, anim, poses=poses)
     _say(args, f"{args.output}: {rig.n_targets} targets animated over {anim.n_frames} frames")
 
@@ -246,7 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``keyshape``; returns the exit code."""
     args = build_parser().parse_args(argv)
     try:
-        COMMANDS[args.verb](args)
+        handler = getattr(args, "handler", None) or COMMANDS[args.verb]
+        handler(args)
     except KeyboardInterrupt:
         print("keyshape: interrupted", file=sys.stderr)
         return 130

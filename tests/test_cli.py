@@ -1,0 +1,164 @@
+"""The command line end to end: the real clip through every verb, and bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from keyshape.cli import main
+from keyshape.io.gltf import read_glb_animation
+from keyshape.io.keys_json import load_keys
+from keyshape.io.track import load_track, save_track
+from keyshape.io.weights_csv import load_weights_csv
+from keyshape.rig import load_rig, save_obj_folder
+
+from gltf_validator import validate
+
+VERBS = ["track", "keys", "solve", "retarget", "run", "demo"]
+
+
+@pytest.fixture(scope="session")
+def demo_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "-o", str(out), "-q"]) == 0
+    return out
+
+
+def _cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "keyshape", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, timeout=600)
+
+
+def test_help_explains_every_verb():
+    result = _cli("--help")
+    assert result.returncode == 0
+    for verb in VERBS:
+        assert verb in result.stdout
+    for verb, option in [("keys", "--method"), ("keys", "--regions"), ("keys", "--neutral"),
+                         ("retarget", "--rig"), ("run", "--count"), ("track", "-o")]:
+        text = _cli(verb, "--help").stdout
+        assert option in text, (verb, option)
+
+
+def test_usage_error_exits_2():
+    assert _cli("keys").returncode == 2
+    assert _cli("keys", "a.npz", "-o", "k.json", "--method", "pca").returncode == 2
+
+
+def test_demo_writes_every_output(demo_out):
+    names = {p.name for p in demo_out.iterdir()}
+    assert {"track.npz", "keys.json", "weights.csv", "animation.glb"} <= names
+    track = load_track(demo_out / "track.npz")
+    assert track.n_frames == 472 and track.valid.mean() >= 0.95
+    keys = load_keys(demo_out / "keys.json")
+    assert keys.n_keys == 16 and set(keys.regions) == {"upper", "lower"}
+    assert track.valid[keys.frames].all() and keys.neutral_frame not in keys.frames
+    weights = load_weights_csv(demo_out / "weights.csv")
+    assert weights.names == keys.names and weights.n_frames == 472
+    assert np.nanmin(weights.values) >= 0
+
+
+def test_demo_glb_is_valid_and_animated(demo_out):
+    report = validate(demo_out / "animation.glb")
+    assert report["numErrors"] == 0, report["messages"][:5]
+    anim = read_glb_animation(demo_out / "animation.glb")
+    weights = load_weights_csv(demo_out / "weights.csv")
+    assert tuple(anim.names) == weights.names
+    np.testing.assert_allclose(anim.weights, np.nan_to_num(weights.values), atol=1e-6)
+    assert anim.rotations is not None and len(anim.rotations) == 472
+    assert anim.times[-1] == pytest.approx(471 / 23.976, rel=1e-4)
+
+
+@pytest.mark.parametrize("method", ["spa", "hull", "spread"])
+def test_verbs_one_by_one(demo_out, tmp_path, method):
+    track = demo_out / "track.npz"
+    keys = tmp_path / "keys.json"
+    assert main(["keys", str(track), "-o", str(keys), "--method", method, "--count", "5", "-q",
+                 "--regions", "eyes"]) == 0
+    k = load_keys(keys)
+    assert k.n_keys == 20 and k.method == method
+    weights = tmp_path / "w.csv"
+    assert main(["solve", str(track), str(keys), "-o", str(weights), "-q"]) == 0
+    assert load_weights_csv(weights).names == k.names
+
+
+def test_retarget_onto_an_obj_rig(demo_out, tmp_path):
+    """The sculpting route: a rig exported as OBJs, one target per key, drives the character."""
+    glb_rig = load_rig(demo_out / "animation.glb")
+    folder = save_obj_folder(glb_rig, tmp_path / "rig")
+    out = tmp_path / "anim.glb"
+    assert main(["retarget", str(demo_out / "weights.csv"), "--rig", str(folder), "--track",
+                 str(demo_out / "track.npz"), "-o", str(out), "-q"]) == 0
+    assert validate(out)["numErrors"] == 0
+    anim = read_glb_animation(out)
+    weights = load_weights_csv(demo_out / "weights.csv")
+    np.testing.assert_allclose(anim.weights, np.nan_to_num(weights.values), atol=1e-6)
+
+
+def test_neutral_option(demo_out, tmp_path):
+    keys = tmp_path / "k.json"
+    assert main(["keys", str(demo_out / "track.npz"), "-o", str(keys), "--neutral", "100", "-q"]) == 0
+    assert load_keys(keys).neutral_frame == 100
+    assert 100 not in load_keys(keys).frames
+
+
+def _assert_clean_failure(result, out_path, *needles):
+    assert result.returncode == 1, result.stderr
+    lines = [l for l in result.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    for needle in needles:
+        assert needle in lines[0]
+    assert not out_path.exists()
+    assert not list(out_path.parent.glob(".*part*"))
+
+
+def test_missing_file(tmp_path):
+    out = tmp_path / "t.npz"
+    _assert_clean_failure(_cli("track", tmp_path / "missing.mp4", "-o", out), out,
+                          "missing.mp4", "not found")
+
+
+def test_not_a_video(tmp_path):
+    fake = tmp_path / "notes.mp4"
+    fake.write_text("just text\n" * 100)
+    out = tmp_path / "t.npz"
+    _assert_clean_failure(_cli("track", fake, "-o", out), out, "notes.mp4", "not a video")
+
+
+def test_video_with_no_face(faceless_video, tmp_path):
+    out = tmp_path / "outdir"
+    _assert_clean_failure(_cli("run", faceless_video, "-o", out), out, "noise.mp4", "no face")
+
+
+def test_track_with_wrong_shape(tmp_path):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, points=np.zeros((10, 478)), fps=30.0)
+    out = tmp_path / "k.json"
+    _assert_clean_failure(_cli("keys", bad, "-o", out), out, "bad.npz", "points must have shape")
+
+
+def test_rig_without_needed_targets(demo_out, tmp_path):
+    rig = load_rig(demo_out / "animation.glb")
+    from keyshape.containers import Rig
+
+    partial = Rig(rig.vertices, rig.faces, rig.deltas[:3], ("smile", *rig.names[1:3]))
+    folder = save_obj_folder(partial, tmp_path / "rig")
+    out = tmp_path / "anim.glb"
+    result = _cli("retarget", demo_out / "weights.csv", "--rig", folder, "-o", out)
+    _assert_clean_failure(result, out, "upper_00", "lower_07")
+
+
+def test_run_on_a_2d_track_from_another_tool(demo_out, tmp_path):
+    """keys and solve accept any points+fps file: here 2D, 68 points (iBUG-like subset)."""
+    track = load_track(demo_out / "track.npz")
+    ids = np.linspace(0, 467, 68).astype(int)
+    path = tmp_path / "other.npz"
+    np.savez(path, points=track.points[:, ids, :2], fps=track.fps)
+    keys = tmp_path / "k.json"
+    assert main(["keys", str(path), "-o", str(keys), "--regions", "whole", "--count", "4", "-q"]) == 0
+    assert main(["solve", str(path), str(keys), "-o", str(tmp_path / "w.csv"), "-q"]) == 0
+    assert load_weights_csv(tmp_path / "w.csv").n_channels == 4
