@@ -100,19 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("keys", type=Path, help="key file from `keyshape keys`")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="WEIGHTS.csv")
 
-    p = sub.add_parser("retarget", parents=[common], formatter_class=_formatter,
-                       help="drive a rig with the weights and write a binary glTF",
-                       description="Apply the weights to a rig whose targets are named after the "
-                                   "key shapes; write the rig with a morph-weight animation.")
-    p.add_argument("weights", type=Path, help="weights CSV from `keyshape solve`")
-    p.add_argument("--rig", type=Path, required=True,
-                   help="folder of OBJs (neutral.obj + <key name>.obj) or a .glb/.gltf with "
-                        "morph targets named after the keys")
-    p.add_argument("--track", type=Path, default=None,
-                   help="track file: also animate the head rotation")
-    p.add_argument("--allow-extra", action="store_true",
-                   help="let rig targets that no key drives stay at 0 (default: an error listing them)")
-    p.add_argument("-o", "--output", type=Path, required=True, metavar="ANIM.glb")
+    modules = discover()
+    extra = ([m for m in modules if m.VERB in STAGE_VERBS], [m for m in modules if m.VERB not in STAGE_VERBS])
+    for module in extra[0]:
+        _add_module(sub, common, module)
 
     p = sub.add_parser("run", parents=[common], formatter_class=_formatter,
                        help="all stages: video -> track, keys, weights, animated .glb",
@@ -132,12 +123,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, default=Path("keyshape-demo"), metavar="OUTDIR",
                    help="output folder (default ./keyshape-demo)")
 
-    for module in discover():
-        p = sub.add_parser(module.VERB, parents=[common], formatter_class=_formatter,
-                           help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP))
-        module.add_arguments(p)
-        p.set_defaults(handler=module.run)
+    for module in extra[1]:
+        _add_module(sub, common, module)
     return parser
+
+
+STAGE_VERBS = ("retarget",)  # listed with the stages, before run and demo
+
+
+def _add_module(sub, common, module) -> None:
+    p = sub.add_parser(module.VERB, parents=[common], formatter_class=_formatter,
+                       help=module.HELP, description=getattr(module, "DESCRIPTION", module.HELP))
+    module.add_arguments(p)
+    p.set_defaults(handler=module.run)
 
 
 def _say(args, text: str) -> None:
@@ -186,28 +184,6 @@ def cmd_solve(args) -> None:
     _say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys")
 
 
-def cmd_retarget(args) -> None:
-    from .io.gltf import write_glb
-    from .io.track import load_track
-    from .io.weights_csv import load_weights_csv
-    from .pipeline import head_poses
-    from .retarget import Mapping, retarget
-    from .rig import load_rig
-
-    weights = load_weights_csv(args.weights)
-    rig = load_rig(args.rig)
-    poses = None
-    if args.track is not None:
-        track = load_track(args.track)
-        if track.n_frames != weights.n_frames:
-            raise InputError(f"{args.track}: has {track.n_frames} frames but {args.weights} has "
-                             f"{weights.n_frames}")
-        poses = head_poses(track)
-    anim = retarget(weights, Mapping.by_name(weights.names, rig.names, allow_extra=args.allow_extra))
-    write_glb(args.output, rig, anim, poses=poses)
-    _say(args, f"{args.output}: {rig.n_targets} targets animated over {anim.n_frames} frames")
-
-
 def _run(args, video: Path) -> None:
     from .capture import track_video
     from .io.gltf import write_glb
@@ -247,7 +223,7 @@ def cmd_demo(args) -> None:
     _run(args, clip)
 
 
-COMMANDS = {"track": cmd_track, "keys": cmd_keys, "solve": cmd_solve, "retarget": cmd_retarget,
+COMMANDS = {"track": cmd_track, "keys": cmd_keys, "solve": cmd_solve,
             "run": cmd_run, "demo": cmd_demo}
 
 
