@@ -188,6 +188,7 @@ def _run(args, video: Path) -> None:
     from .capture import track_video
     from .io.gltf import write_glb
     from .io.keys_json import save_keys
+    from .io.take import save_take_info
     from .io.track import save_track
     from .io.weights_csv import save_weights_csv
     from .pipeline import default_character, discover_keys, solve_take
@@ -206,10 +207,11 @@ def _run(args, video: Path) -> None:
     save_keys(keys, out / "keys.json")
     save_weights_csv(solved.weights, out / "weights.csv")
     write_glb(out / "animation.glb", rig, anim, poses=solved.poses)
+    save_take_info(out / "take.json", video=video, track=track, keys=keys)
     _say(args, f"{video.name}: {track.n_frames} frames, face in {100 * track.valid.mean():.1f} %, "
                f"neutral frame {keys.neutral_frame}")
     _say(args, f"keys: {_describe_keys(keys)}")
-    _say(args, f"wrote {out}/track.npz, keys.json, weights.csv, animation.glb "
+    _say(args, f"wrote {out}/track.npz, keys.json, weights.csv, animation.glb, take.json "
                f"in {time.perf_counter() - start:.1f} s")
 
 

@@ -105,9 +105,12 @@ def default_character(keys: KeyShapes) -> Rig:
 
     if keys.n_landmarks not in (468, 478) or keys.n_dims != 3:
         raise InputError("the default character needs a 3D MediaPipe track; give a rig with --rig")
-    return rig_from_keyshapes(keys, face_triangles())
+    rig = rig_from_keyshapes(keys, face_triangles())
+    return Rig(rig.vertices, _facing_viewer(rig.vertices, rig.faces), rig.deltas, rig.names)
 
 
-def weights_or_zero(weights: Weights) -> np.ndarray:
-    """(n_frames, n_channels) float: weights with frames that have no estimate at 0 (neutral)."""
-    return np.nan_to_num(weights.values)
+def _facing_viewer(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Wind every triangle counter-clockwise as seen from +Z (glTF front faces toward the viewer)."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    normal_z = np.cross(b - a, c - a)[:, 2]
+    return np.where((normal_z < 0)[:, None], faces[:, [0, 2, 1]], faces)

@@ -1,0 +1,46 @@
+"""``take.json``: what ``keyshape run`` wrote for one take, for the report and the viewer.
+
+``{"format": "keyshape-take", "version": 1, "video": "/abs/path/take.mp4", "fps": 23.976,
+"n_frames": 472, "image_size": [640, 360], "neutral_frame": 12, "files": {"track": "track.npz",
+"keys": "keys.json", "weights": "weights.csv", "animation": "animation.glb"}}``
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ..containers import KeyShapes, Track
+from ..exceptions import InputError
+from .atomic import atomic_path
+
+__all__ = ["save_take_info", "load_take_info", "TAKE_FILES"]
+
+TAKE_FILES = {"track": "track.npz", "keys": "keys.json", "weights": "weights.csv",
+              "animation": "animation.glb"}
+
+
+def save_take_info(path: str | Path, *, video: Path, track: Track, keys: KeyShapes,
+                   files: dict[str, str] | None = None) -> Path:
+    """Write the take description beside the outputs, atomically."""
+    info = {"format": "keyshape-take", "version": 1, "video": str(Path(video).resolve()),
+            "fps": track.fps, "n_frames": track.n_frames,
+            "image_size": list(track.image_size) if track.image_size else None,
+            "neutral_frame": int(keys.neutral_frame), "files": files or dict(TAKE_FILES)}
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(info, indent=1) + "\n")
+    return Path(path)
+
+
+def load_take_info(folder: str | Path) -> dict:
+    """Read ``take.json`` from an output folder of ``keyshape run``."""
+    path = Path(folder) / "take.json"
+    if not path.is_file():
+        raise InputError(f"{folder}: no take.json here; is it an output folder of `keyshape run`?")
+    try:
+        info = json.loads(path.read_text())
+    except ValueError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    if info.get("format") != "keyshape-take":
+        raise InputError(f"{path}: not a keyshape take description")
+    return info
