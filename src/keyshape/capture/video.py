@@ -1,8 +1,14 @@
-"""Video decoding with PyAV: the only module that imports ``av`` for reading."""
+"""Frame sources: video files (PyAV, the only decoder import) and folders of images.
+
+``iter_frames`` yields ``(timestamp_ms, rgb)`` with rotation metadata applied, optionally for a
+frame range only; ``prefetch`` decodes in a background thread so decoding overlaps tracking.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import queue
+import threading
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,23 +16,34 @@ import numpy as np
 
 from ..exceptions import InputError
 
-__all__ = ["VideoInfo", "probe", "iter_frames"]
+__all__ = ["VideoInfo", "probe", "iter_frames", "prefetch", "IMAGE_SUFFIXES"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+FOLDER_FPS = 30.0
 
 
 @dataclass(frozen=True)
 class VideoInfo:
-    """What a video stream says about itself."""
+    """What a frame source says about itself (size after rotation)."""
 
     fps: float
     width: int
     height: int
     n_frames: int  # 0 when the container does not say
+    rotation: int = 0  # degrees counter-clockwise applied to decoded frames
+
+
+def _images(folder: Path) -> list[Path]:
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise InputError(f"{folder}: folder has no images ({', '.join(IMAGE_SUFFIXES)})")
+    return files
 
 
 def _open(path: Path):
     import av
 
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"{path}: file not found")
     try:
         container = av.open(str(path))
@@ -38,37 +55,134 @@ def _open(path: Path):
     return container
 
 
-def probe(path: str | Path) -> VideoInfo:
-    """Frame rate, size and frame count of the first video stream of ``path``."""
-    path = Path(path)
-    with _open(path) as container:
-        stream = container.streams.video[0]
-        rate = stream.average_rate or stream.guessed_rate or 30
-        return VideoInfo(float(rate), stream.width, stream.height, int(stream.frames or 0))
+def _read_image(path: Path) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return np.asarray(image.convert("RGB"))
+    except (OSError, UnidentifiedImageError) as exc:
+        raise InputError(f"{path}: not a readable image ({exc.__class__.__name__})") from None
 
 
-def iter_frames(path: str | Path) -> Iterator[tuple[int, np.ndarray]]:
-    """Yield ``(timestamp_ms, rgb)`` for every frame; ``rgb`` is (height, width, 3) uint8.
-
-    Timestamps come from the stream's presentation times and are made strictly
-    increasing (MediaPipe's VIDEO mode requires it).
-    """
+def _first_rotation(container) -> int:
     import av
 
+    try:
+        frame = next(container.decode(video=0))
+    except (StopIteration, av.error.FFmpegError):
+        return 0
+    return int(round(getattr(frame, "rotation", 0) or 0)) % 360
+
+
+def probe(path: str | Path, *, fps: float | None = None) -> VideoInfo:
+    """Frame rate, size (after rotation) and frame count of a video file or image folder.
+
+    ``fps`` overrides the rate (image folders default to 30 frames/s).
+    """
     path = Path(path)
+    if path.is_dir():
+        files = _images(path)
+        height, width = _read_image(files[0]).shape[:2]
+        return VideoInfo(float(fps or FOLDER_FPS), width, height, len(files))
+    with _open(path) as container:
+        stream = container.streams.video[0]
+        rate = float(fps or stream.average_rate or stream.guessed_rate or 30)
+        rotation = _first_rotation(container)
+        width, height = stream.width, stream.height
+        if rotation in (90, 270):
+            width, height = height, width
+        return VideoInfo(rate, width, height, int(stream.frames or 0), rotation)
+
+
+def _rotate(rgb: np.ndarray, rotation: int) -> np.ndarray:
+    """Undo the display rotation: frames come out upright."""
+    return np.ascontiguousarray(np.rot90(rgb, k=rotation // 90)) if rotation else rgb
+
+
+def _decode_video(path: Path, fps: float | None) -> Iterator[tuple[int, np.ndarray]]:
+    import av
+
     with _open(path) as container:
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"
-        rate = float(stream.average_rate or stream.guessed_rate or 30)
-        last = -1
+        rate = float(fps or stream.average_rate or stream.guessed_rate or 30)
         try:
             for index, frame in enumerate(container.decode(stream)):
-                if frame.pts is not None and frame.time_base is not None:
+                if fps is None and frame.pts is not None and frame.time_base is not None:
                     ms = int(round(float(frame.pts * frame.time_base) * 1000))
                 else:
                     ms = int(round(index * 1000 / rate))
-                ms = max(ms, last + 1)
-                last = ms
-                yield ms, frame.to_ndarray(format="rgb24")
+                rotation = int(round(getattr(frame, "rotation", 0) or 0)) % 360
+                yield ms, _rotate(frame.to_ndarray(format="rgb24"), rotation)
         except av.error.FFmpegError as exc:
             raise InputError(f"{path}: video could not be decoded ({exc.__class__.__name__})") from None
+
+
+def _decode_folder(folder: Path, fps: float | None) -> Iterator[tuple[int, np.ndarray]]:
+    rate = float(fps or FOLDER_FPS)
+    size = None
+    for index, file in enumerate(_images(folder)):
+        rgb = _read_image(file)
+        if size is not None and rgb.shape != size:
+            raise InputError(f"{file}: image is {rgb.shape[1]}x{rgb.shape[0]} but the first one is "
+                             f"{size[1]}x{size[0]}")
+        size = rgb.shape
+        yield int(round(index * 1000 / rate)), rgb
+
+
+def iter_frames(path: str | Path, *, start: int = 0, end: int | None = None,
+                fps: float | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(timestamp_ms, rgb)`` for frames ``start <= i < end`` of a video or image folder.
+
+    ``rgb`` is (height, width, 3) uint8, upright (rotation metadata applied). Timestamps come
+    from the stream's presentation times and are strictly increasing (MediaPipe's VIDEO mode
+    requires it).
+    """
+    path = Path(path)
+    source = _decode_folder(path, fps) if path.is_dir() else _decode_video(path, fps)
+    last = -1
+    for index, (ms, rgb) in enumerate(source):
+        if end is not None and index >= end:
+            break
+        ms = max(ms, last + 1)
+        last = ms
+        if index >= start:
+            yield ms, rgb
+
+
+_DONE = object()
+
+
+def prefetch(frames: Iterable, *, depth: int = 8) -> Iterator:
+    """Run ``frames`` in a background thread, ``depth`` items ahead; errors are re-raised here.
+
+    Decoding (PyAV releases the GIL) then overlaps with the consumer's work on the other core.
+    """
+    items: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def produce():
+        try:
+            for item in frames:
+                if stop.is_set():
+                    return
+                items.put(item)
+            items.put(_DONE)
+        except BaseException as exc:  # handed to the consumer
+            items.put(exc)
+
+    worker = threading.Thread(target=produce, daemon=True, name="keyshape-decode")
+    worker.start()
+    try:
+        while (item := items.get()) is not _DONE:
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        while worker.is_alive():
+            try:
+                items.get_nowait()
+            except queue.Empty:
+                worker.join(timeout=0.05)

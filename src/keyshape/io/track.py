@@ -19,19 +19,38 @@ FORMAT_VERSION = 1
 
 def save_track(track: Track, path: str | Path) -> Path:
     """Write ``track`` to ``path`` (.npz), atomically."""
-    arrays = {"points": track.points, "fps": np.float64(track.fps),
-              "format_version": np.int64(FORMAT_VERSION)}
-    if track.image_size is not None:
-        arrays["image_size"] = np.array(track.image_size, dtype=np.int64)
-    if track.blendshapes is not None:
-        arrays["blendshapes"] = track.blendshapes
-        arrays["blendshape_names"] = np.array(track.blendshape_names, dtype=str)
-    if track.head_matrix is not None:
-        arrays["head_matrix"] = track.head_matrix
+    return write_track_arrays(path, points=track.points, fps=track.fps, image_size=track.image_size,
+                              blendshapes=track.blendshapes, blendshape_names=track.blendshape_names,
+                              head_matrix=track.head_matrix)
+
+
+def write_track_arrays(path: str | Path, *, points: np.ndarray, fps: float,
+                       image_size: tuple[int, int] | None = None, blendshapes: np.ndarray | None = None,
+                       blendshape_names: tuple[str, ...] = (), head_matrix: np.ndarray | None = None) -> Path:
+    """Write track arrays (memory maps welcome: they are streamed in chunks), atomically.
+
+    points : (n_frames, n_landmarks, 2|3); blendshapes : (n_frames, n_scores);
+    head_matrix : (n_frames, 4, 4).
+    """
+    arrays = {"points": points, "fps": np.float64(fps), "format_version": np.int64(FORMAT_VERSION)}
+    if image_size is not None:
+        arrays["image_size"] = np.array(image_size, dtype=np.int64)
+    if blendshapes is not None:
+        arrays["blendshapes"] = blendshapes
+        arrays["blendshape_names"] = np.array(blendshape_names, dtype=str)
+    if head_matrix is not None:
+        arrays["head_matrix"] = head_matrix
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+        _write_npz(tmp, arrays)
     return Path(path)
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """``np.savez_compressed`` that streams each array (numpy writes in 16 MiB chunks)."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+        for name, array in arrays.items():
+            with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(array), allow_pickle=False)
 
 
 def load_track(path: str | Path) -> Track:
@@ -56,7 +75,7 @@ def load_track(path: str | Path) -> Track:
     names = arrays.get("blendshape_names")
     try:
         return Track(points, float(arrays["fps"]), tuple(size) if size is not None else None,
-                     arrays.get("blendshapes"), tuple(names) if names is not None else (),
+                     arrays.get("blendshapes"), tuple(str(n) for n in names) if names is not None else (),
                      arrays.get("head_matrix"))
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
