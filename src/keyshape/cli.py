@@ -66,6 +66,17 @@ def _add_key_options(p: argparse.ArgumentParser) -> None:
                         "closest to the median aligned shape")
 
 
+def _add_capture_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--start", type=int, default=0, metavar="FRAME", help="first frame to track (default 0)")
+    p.add_argument("--end", type=int, default=None, metavar="FRAME",
+                   help="stop before this frame (default: the last frame)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frame rate override (image folders default to 30)")
+    p.add_argument("--face", type=int, default=0, metavar="N",
+                   help="which person to follow when several are visible: 0 = the largest face at "
+                        "the start (default), 1 = the next largest, ...")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="keyshape", description=DESCRIPTION, epilog=EPILOG,
                                      formatter_class=_formatter)
@@ -81,8 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "FaceLandmarker (vendored model). Writes points (pixels), fps, "
                                    "the 52 ARKit-style scores and the head matrix to TRACK.npz; "
                                    "frames without a face are NaN.")
-    p.add_argument("video", type=Path, help="video file (anything PyAV opens)")
+    p.add_argument("video", type=Path, help="video file (anything PyAV opens; rotation metadata "
+                                            "is honoured) or a folder of images")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="TRACK.npz")
+    _add_capture_options(p)
 
     p = sub.add_parser("keys", parents=[common], formatter_class=_formatter,
                        help="discover key shapes (real frames) per region",
@@ -110,8 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Track, discover keys, solve and retarget in one go. Without "
                                    "--rig the character is a face mesh of the actor's own neutral "
                                    "landmarks with the key frames as its targets.")
-    p.add_argument("video", type=Path)
+    p.add_argument("video", type=Path, help="video file or folder of images")
     p.add_argument("--rig", type=Path, default=None, help="rig with targets named after the keys")
+    _add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     _add_key_options(p)
 
@@ -144,13 +158,16 @@ def _say(args, text: str) -> None:
 
 
 def cmd_track(args) -> None:
-    from .capture import track_video
-    from .io.track import save_track
+    from .capture import track_to_file
 
-    track = track_video(args.video, progress=not args.quiet)
-    save_track(track, args.output)
-    _say(args, f"{args.output}: {track.n_frames} frames, face in {int(track.valid.sum())} "
-               f"({100 * track.valid.mean():.1f} %), {track.fps:g} fps")
+    summary = track_to_file(args.video, args.output, progress=not args.quiet, **_capture_kwargs(args))
+    n, found = summary["n_frames"], summary["n_faces"]
+    _say(args, f"{args.output}: {n} frames, face in {found} ({100 * found / n:.1f} %), "
+               f"{summary['fps']:g} fps")
+
+
+def _capture_kwargs(args) -> dict:
+    return {"start": args.start, "end": args.end, "fps": args.fps, "face": args.face}
 
 
 def cmd_keys(args) -> None:
@@ -196,7 +213,7 @@ def _run(args, video: Path) -> None:
     from .rig import load_rig
 
     start = time.perf_counter()
-    track = track_video(video, progress=not args.quiet)
+    track = track_video(video, progress=not args.quiet, **_capture_kwargs(args))
     keys = discover_keys(track, regions=args.regions, n_keys=args.count, method=args.method,
                          neutral=args.neutral, take=video.name)
     solved = solve_take(track, keys)
@@ -221,6 +238,7 @@ def cmd_run(args) -> None:
 
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
+    args.start, args.end, args.fps, args.face = 0, None, None, 0
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))
     _run(args, clip)
 
