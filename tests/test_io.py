@@ -91,3 +91,23 @@ def test_failed_write_leaves_nothing(tmp_path):
     with pytest.raises(RuntimeError):
         save_weights_csv(w, tmp_path / "w.csv")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_landmark_csv_from_another_tool(tmp_path):
+    path = tmp_path / "other.csv"
+    path.write_text("frame,time,x0,y0,x1,y1,x2,y2\n0,0.0,1,2,3,4,5,6\n1,0.04,,,,,,\n2,0.08,1,2,3,4,5,7\n")
+    track = load_track(path)
+    assert track.points.shape == (3, 3, 2)
+    assert track.valid.tolist() == [True, False, True]
+    assert track.fps == pytest.approx(25.0)
+    assert track.points[2, 2, 1] == 7
+
+
+def test_landmark_csv_3d_and_bad_header(tmp_path):
+    path = tmp_path / "t3.csv"
+    path.write_text("frame,x0,y0,z0,x1,y1,z1\n0,1,2,3,4,5,6\n")
+    assert load_track(path, fps=50).n_dims == 3 and load_track(path, fps=50).fps == 50
+    bad = tmp_path / "bad.csv"
+    bad.write_text("frame,a,b\n0,1,2\n")
+    with pytest.raises(InputError, match="bad.csv: landmark columns must be x0,y0"):
+        load_track(bad)

@@ -101,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="discover key shapes (real frames) per region",
                        description="Choose K real frames per face region that span the performance "
                                    "(the key shapes an artist will sculpt on the character).")
-    p.add_argument("track", type=Path, help="track file (.npz with points and fps)")
+    p.add_argument("track", type=Path, help="track file (.npz with points and fps, or a landmark CSV "
+                                            "frame,x0,y0[,z0],x1,... from another tool)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="KEYS.json")
     _add_key_options(p)
 

@@ -53,11 +53,18 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
                 np.lib.format.write_array(fh, np.asanyarray(array), allow_pickle=False)
 
 
-def load_track(path: str | Path) -> Track:
-    """Read a track file written by keyshape or any tool that writes ``points`` and ``fps``."""
+def load_track(path: str | Path, *, fps: float | None = None) -> Track:
+    """Read a track: a keyshape ``.npz`` (any file with ``points`` and ``fps``) or a landmark CSV.
+
+    A CSV from another tool has the header ``frame,x0,y0[,z0],x1,y1[,z1],...`` (optionally a
+    ``time`` column in seconds after ``frame``), coordinates in pixels, empty cells for frames
+    without a face. Its frame rate comes from the time column, else ``fps``, else 30.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: file not found")
+    if path.suffix.lower() == ".csv":
+        return _load_csv_track(path, fps)
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
@@ -79,3 +86,39 @@ def load_track(path: str | Path) -> Track:
                      arrays.get("head_matrix"))
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
+
+
+def _csv_layout(path: Path, header: list[str]) -> tuple[int, int]:
+    """(first coordinate column, n_dims) from a landmark CSV header."""
+    if not header or header[0] != "frame":
+        raise InputError(f"{path}: a landmark CSV needs the header frame,x0,y0[,z0],x1,...")
+    first = 2 if len(header) > 1 and header[1] == "time" else 1
+    n_dims = 3 if len(header) > first + 2 and header[first + 2] == "z0" else 2
+    expected = [f"{a}{i}" for i in range((len(header) - first) // n_dims) for a in "xyz"[:n_dims]]
+    if header[first:] != expected or not expected:
+        raise InputError(f"{path}: landmark columns must be x0,y0{',z0' if n_dims == 3 else ''},x1,... "
+                         f"in order; got {','.join(header[first:first + 6])}...")
+    return first, n_dims
+
+
+def _load_csv_track(path: Path, fps: float | None) -> Track:
+    import csv
+
+    try:
+        with open(path, newline="") as fh:
+            rows = [r for r in csv.reader(fh) if r]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not a readable CSV file ({exc.__class__.__name__})") from None
+    if len(rows) < 2:
+        raise InputError(f"{path}: a landmark CSV needs a header and at least one row")
+    first, n_dims = _csv_layout(path, rows[0])
+    try:
+        table = np.array([[float(c) if c.strip() else np.nan for c in r] for r in rows[1:]])
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    if table.ndim != 2 or table.shape[1] != len(rows[0]):
+        raise InputError(f"{path}: every row needs {len(rows[0])} columns")
+    if first == 2 and len(table) > 1 and table[-1, 1] > table[0, 1]:
+        fps = (len(table) - 1) / (table[-1, 1] - table[0, 1])
+    points = table[:, first:].reshape(len(table), -1, n_dims)
+    return Track(points, fps or 30.0)
