@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from .metrics import nonnegative_fit
+
 _RANK_TOL = 1e-9
 
 
@@ -105,6 +107,37 @@ def spa(X: np.ndarray, n_keys: int) -> np.ndarray:
     return _farthest_points(X, chosen, np.arange(len(X)), n_keys)
 
 
+def spa_refined(X: np.ndarray, n_keys: int) -> np.ndarray:
+    """SPA, then exchanges (``refine_swaps``); never worse than ``spread`` or ``hull``.
+
+    The exchange search is local. If, started from the SPA set, it ends with a larger
+    non-negative fitting error than the better of the ``spread`` and ``hull`` sets, it
+    is run again from that set and the better result is kept.
+
+    Parameters
+    ----------
+    X : (n_frames, n_features) float
+    n_keys : int, <= n_frames
+
+    Returns
+    -------
+    (n_keys,) int, distinct rows of ``X``
+    """
+    max_swaps = 3 * n_keys
+    best = refine_swaps(X, spa(X, n_keys), max_swaps=max_swaps)
+    seeds = [spread(X, n_keys), hull(X, n_keys)]
+    seed = min(seeds, key=lambda rows: fit_error(X, rows))
+    if fit_error(X, best) >= fit_error(X, seed):
+        best = min(best, refine_swaps(X, seed, max_swaps=max_swaps), key=lambda rows: fit_error(X, rows))
+    return best
+
+
+def fit_error(X: np.ndarray, rows: np.ndarray) -> float:
+    """Exact ``Σ_f min_{w >= 0} |x_f - wᵀ X_rows|²`` (Lawson-Hanson per frame)."""
+    weights = nonnegative_fit(X, X[rows])
+    return float(((X - weights @ X[rows]) ** 2).sum())
+
+
 def _principal_projections(X: np.ndarray, *, centre_scores: bool = True) -> np.ndarray:
     """Scores ``(n_frames, rank)`` on the principal axes of ``X`` (PCA about the mean).
 
@@ -180,8 +213,8 @@ def refine_swaps(X: np.ndarray, chosen: np.ndarray, *, max_swaps: int, patience:
     """Improve a key set by exchanges that lower the non-negative fitting error.
 
     The objective is ``E(S) = Σ_f min_{w >= 0} |x_f - Σ_{k in S} w_k x_k|²`` over all rows.
-    Each step proposes the row worst explained by the current keys (its error would drop
-    to zero), fits the keys plus that row, and tries dropping each of the least important
+    Each step proposes the row whose addition as a key would lower ``E`` most to first
+    order (see ``_addition_gain``), fits the keys plus that row, and tries dropping each of the least important
     keys (smallest ``G_kk Σ_f w_fk²``, the cost of zeroing ``w_k``); the best exchange is
     kept if it lowers ``E``. A proposal that fails is not proposed again; the search stops
     after ``patience`` failures in a row or ``max_swaps`` exchanges. All fits work on the
@@ -205,10 +238,11 @@ def refine_swaps(X: np.ndarray, chosen: np.ndarray, *, max_swaps: int, patience:
     swaps = fails = 0
     tol = 1e-9 * np.trace(gram)
     while swaps < max_swaps and fails < patience:
-        open_cost = cost.copy()
-        open_cost[keys + sorted(tabu)] = -1.0
-        new = int(np.argmax(open_cost))
-        if open_cost[new] <= tol:
+        # Alternate two proposals: the largest first-order gain, the worst-explained frame.
+        score = _addition_gain(gram, keys, weights) if fails % 2 == 0 else cost.copy()
+        score[keys + sorted(tabu)] = -1.0
+        new = int(np.argmax(score))
+        if score[new] <= tol:
             break
         trial = _best_exchange(gram, keys, weights, new)
         if trial[2].sum() < cost.sum() - tol:
@@ -219,21 +253,38 @@ def refine_swaps(X: np.ndarray, chosen: np.ndarray, *, max_swaps: int, patience:
     return np.array(keys, dtype=int)
 
 
-def _best_exchange(gram, keys, weights, new, n_trials: int = 6, sweeps: int = 40):
+def _addition_gain(gram: np.ndarray, keys, weights: np.ndarray) -> np.ndarray:
+    """First-order gain of adding each row as a key, ``(n_frames,)``.
+
+    With the other weights fixed, the best non-negative weight of a new key ``c`` in frame
+    ``f`` lowers that frame's error by ``max(0, -g_fc)² / H_cc``, where
+    ``g_fc = Σ_k w_fk H_kc - H_fc`` is the gradient; the gain sums this over frames.
+    """
+    grad = weights @ gram[keys] - gram  # (n_frames, n_candidates)
+    return (np.minimum(grad, 0.0) ** 2).sum(axis=0) / np.maximum(np.diag(gram), 1e-300)
+
+
+def _best_exchange(gram, keys, weights, new, n_trials: int = 4, sweeps: int = 20):
     """Best set ``keys - {k} + {new}`` over the ``n_trials`` least important ``k``.
 
-    Returns ``(keys, weights, per-row costs)`` of the best trial.
+    Warm-started from ``weights (n_frames, n_keys)``, only the frames whose optimum can
+    change are refitted: adding ``new`` matters only where its gradient is negative,
+    removing ``k`` only where ``w_k > 0`` (elsewhere the old weights stay optimal).
+    Returns ``(keys, weights, per-frame costs)`` of the best trial.
     """
     grown = keys + [new]
-    w = _cd_nnls(gram[np.ix_(grown, grown)], gram[:, grown], np.column_stack([weights, np.zeros(len(gram))]), sweeps)
+    w = np.column_stack([weights, np.zeros(len(gram))])
+    rows = np.flatnonzero(weights @ gram[keys, new] - gram[:, new] < 0)
+    w[rows] = _cd_nnls(gram[np.ix_(grown, grown)], gram[np.ix_(rows, grown)], w[rows], sweeps)
     importance = np.diag(gram)[keys] * (w[:, :-1] ** 2).sum(axis=0)
     drops = np.argsort(importance, kind="stable")[:n_trials]
     sets = [[k for i, k in enumerate(grown) if i != d] for d in drops]
+    w_trials = np.stack([np.delete(w, d, axis=1) for d in drops])  # (n_trials, n_frames, n_keys)
+    rows = np.flatnonzero((w[:, drops] > 0).any(axis=1))
     idx = np.array(sets)  # (n_trials, n_keys)
     g = gram[idx[:, :, None], idx[:, None, :]]  # (n_trials, n_keys, n_keys)
-    c = np.moveaxis(gram[:, idx], 1, 0)  # (n_trials, n_frames, n_keys)
-    w0 = np.stack([np.delete(w, d, axis=1) for d in drops])
-    w_trials = _cd_nnls(g, c, w0, sweeps)
+    c = np.moveaxis(gram[rows][:, idx], 1, 0)  # (n_trials, n_rows, n_keys)
+    w_trials[:, rows] = _cd_nnls(g, c, w_trials[:, rows], sweeps)
     costs = np.stack([_costs(gram, s, wt) for s, wt in zip(sets, w_trials)])
     best = int(np.argmin(costs.sum(axis=1)))
     return sets[best], w_trials[best], costs[best]

@@ -20,7 +20,9 @@ Methods
 ``"spa"`` (default)
     Successive projection (Gillis & Vavasis 2014), the provably robust algorithm for
     separable non-negative factorisation, refined by exchanges that lower the
-    non-negative reconstruction error of all frames.
+    non-negative reconstruction error of all frames. If that local search ends above
+    the error of the ``spread`` or ``hull`` set, it is rerun from the better of those,
+    so ``spa`` is never worse than the paper's methods.
 
 References
 ----------
@@ -138,8 +140,7 @@ def _select_rows(data: np.ndarray, n_keys: int, method: str) -> np.ndarray:
         return _select.spread(data, n_keys)
     if method == "hull":
         return _select.hull(data, n_keys)
-    rows = _select.spa(data, n_keys)
-    return _select.refine_swaps(data, rows, max_swaps=3 * n_keys)
+    return _select.spa_refined(data, n_keys)
 
 
 def _region_deltas(points, neutral, frames, key_regions, regions) -> np.ndarray:
