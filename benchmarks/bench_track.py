@@ -1,0 +1,123 @@
+"""Tracking speed and memory: ``keyshape track`` vs a bare PyAV + MediaPipe loop.
+
+    python benchmarks/bench_track.py                 # speed on the demo clip, memory at 1 and 5 min
+    python benchmarks/bench_track.py --minutes 1 5 60  # add a one-hour input (about 25 min here)
+
+Speed: frames/s of the product's tracker (``track_to_file``: decode thread + MediaPipe + the
+per-frame bookkeeping + writing the track) and of the obvious baseline (a plain loop of PyAV
+decode and ``detect_for_video``, results discarded) on the same clip, alternated, best of N.
+Memory: peak resident set size of ``keyshape track`` in a fresh process on the demo clip looped
+to the given lengths (packets remuxed, not re-encoded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from importlib import resources
+from pathlib import Path
+
+CLIP = Path(str(resources.files("keyshape").joinpath("data/WolfgangLanger_Pexels.mp4")))
+
+
+def bare_loop(path: Path) -> int:
+    """PyAV decode + MediaPipe detect_for_video, nothing else."""
+    import av
+    import mediapipe as mp
+    from mediapipe.tasks.python import BaseOptions, vision
+
+    from keyshape.capture import default_model_path
+
+    options = vision.FaceLandmarkerOptions(
+        base_options=BaseOptions(model_asset_path=str(default_model_path())),
+        running_mode=vision.RunningMode.VIDEO, output_face_blendshapes=True,
+        output_facial_transformation_matrixes=True)
+    n = 0
+    with av.open(str(path)) as container, vision.FaceLandmarker.create_from_options(options) as lm:
+        for i, frame in enumerate(container.decode(video=0)):
+            image = mp.Image(image_format=mp.ImageFormat.SRGB, data=frame.to_ndarray(format="rgb24"))
+            lm.detect_for_video(image, int(i * 1000 / 24))
+            n += 1
+    return n
+
+
+def ours(path: Path, out: Path) -> int:
+    from keyshape.capture import track_to_file
+
+    return track_to_file(path, out, progress=False)["n_frames"]
+
+
+def speed(repeats: int) -> tuple[float, float]:
+    best = {"bare": 0.0, "ours": 0.0}
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(repeats):
+            for name in ("bare", "ours"):
+                start = time.perf_counter()
+                n = bare_loop(CLIP) if name == "bare" else ours(CLIP, Path(tmp) / "t.npz")
+                best[name] = max(best[name], n / (time.perf_counter() - start))
+    return best["bare"], best["ours"]
+
+
+def looped(minutes: float, folder: Path) -> Path:
+    """The demo clip repeated to ``minutes`` long, by remuxing its packets."""
+    import av
+
+    out_path = folder / f"looped_{minutes:g}min.mp4"
+    with av.open(str(CLIP)) as src:
+        stream = src.streams.video[0]
+        packets = [p for p in src.demux(stream) if p.dts is not None]
+        duration = max(p.pts for p in packets) + packets[1].pts - packets[0].pts
+        clip_seconds = float(duration * stream.time_base)
+        repeats = max(1, round(minutes * 60 / clip_seconds))
+        with av.open(str(out_path), "w") as dst:
+            out = dst.add_stream_from_template(stream)
+            for r in range(repeats):
+                for p in packets:
+                    p.pts += duration if r else 0
+                    p.dts += duration if r else 0
+                    p.stream = out
+                    dst.mux(p)
+    return out_path
+
+
+def peak_rss_mib(video: Path, folder: Path) -> tuple[float, float, int]:
+    """(peak RSS MiB, seconds, frames) of `keyshape track` in a fresh process."""
+    start = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", "track", str(video), "-o",
+                             str(folder / "t.npz"), "-q"])
+    _, status, usage = os.wait4(proc.pid, 0)
+    if status != 0:
+        raise SystemExit(f"keyshape track failed on {video}")
+    import numpy as np
+
+    with np.load(folder / "t.npz") as data:
+        frames = data["points"].shape[0]
+    return usage.ru_maxrss / 1024, time.perf_counter() - start, frames
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--minutes", type=float, nargs="*", default=[1, 5])
+    args = parser.parse_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    bare, fast = speed(args.repeats)
+    print("\n| tracker | frames/s | ratio |\n|---|---|---|")
+    print(f"| bare PyAV decode + detect_for_video loop | {bare:.1f} | 1.00 |")
+    print(f"| keyshape track_to_file | {fast:.1f} | {fast / bare:.2f} |")
+    print("\n| input length | frames | peak RSS (MiB) | wall time (s) |\n|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for minutes in args.minutes:
+            video = looped(minutes, Path(tmp))
+            rss, seconds, frames = peak_rss_mib(video, Path(tmp))
+            print(f"| {minutes:g} min | {frames} | {rss:.0f} | {seconds:.0f} |", flush=True)
+            video.unlink()
+
+
+if __name__ == "__main__":
+    main()
