@@ -1,0 +1,303 @@
+"""Serve the viewer page and one take's files on the loopback interface (stdlib ``http.server``).
+
+Routes, all ``GET`` or ``HEAD``:
+
+==========================  =====================================================================
+``/``                       the page, ``static/index.html``
+``/static/<name>``          the page's files (``viewer.js``, ``viewer.css``)
+``/api/take``               what the page needs to know, as JSON (see :meth:`Take.as_json`)
+``/media/video``            the source video named in ``take.json``
+``/media/<file>``           a file of the take listed in ``take.json`` (``animation.glb``, ...)
+==========================  =====================================================================
+
+Files are sent with ``Accept-Ranges: bytes`` and single byte ranges are honoured (``206``),
+so the page's ``<video>`` can seek. Nothing outside the static folder, the take's listed
+files and its video is ever served.
+
+References
+----------
+RFC 9110, *HTTP Semantics*, sections 14.1.2 (byte ranges) and 15.3.7 (206 Partial Content).
+"""
+
+from __future__ import annotations
+
+import json
+import mimetypes
+import re
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+from ..exceptions import InputError
+from ..io.take import load_take_info
+
+__all__ = ["Take", "load_take", "make_server", "ViewerServer", "parse_range"]
+
+STATIC = Path(str(resources.files("keyshape.viewer").joinpath("static")))
+_MIME = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json", ".js": "text/javascript",
+         ".css": "text/css", ".html": "text/html; charset=utf-8", ".json": "application/json",
+         ".csv": "text/csv", ".npz": "application/octet-stream", ".mp4": "video/mp4",
+         ".m4v": "video/mp4", ".mov": "video/quicktime", ".webm": "video/webm",
+         ".mkv": "video/x-matroska", ".ogv": "video/ogg"}
+_CHUNK = 1 << 16
+
+
+@dataclass(frozen=True)
+class Take:
+    """One output folder of ``keyshape run`` as the viewer serves it.
+
+    Attributes
+    ----------
+    folder : Path
+    fps : float
+    n_frames : int
+    neutral_frame : int or None
+    video : Path or None
+        The source video; None when ``take.json`` names none or the file is gone.
+    files : dict of str to Path
+        The take's files that exist, by file name (``animation.glb``, ``weights.csv``, ...).
+    key_frames : dict of str to int
+        Source frame of each key shape of this take, by key name (from ``keys.json``).
+    """
+
+    folder: Path
+    fps: float
+    n_frames: int
+    neutral_frame: int | None = None
+    video: Path | None = None
+    files: dict[str, Path] = field(default_factory=dict)
+    key_frames: dict[str, int] = field(default_factory=dict)
+    animation: str = "animation.glb"
+
+    def as_json(self) -> dict:
+        """The page's view of the take: numbers, URLs of the files, key frames."""
+        return {"name": self.folder.name, "fps": self.fps, "n_frames": self.n_frames,
+                "neutral_frame": self.neutral_frame,
+                "video": "/media/video" if self.video else None,
+                "video_name": self.video.name if self.video else None,
+                "animation": f"/media/{self.animation}",
+                "files": {name: f"/media/{name}" for name in self.files},
+                "key_frames": self.key_frames}
+
+
+def load_take(folder: str | Path) -> Take:
+    """Read ``take.json`` (and the key frames from ``keys.json``) of an output folder.
+
+    Raises
+    ------
+    InputError
+        If the folder has no valid ``take.json`` or no animation file, or if its frame
+        rate or frame count is not positive.
+    """
+    folder = Path(folder).resolve()
+    info = load_take_info(folder)
+    fps, n_frames = info.get("fps"), info.get("n_frames")
+    if not isinstance(fps, (int, float)) or not fps > 0:
+        raise InputError(f"{folder / 'take.json'}: fps must be a positive number; got {fps!r}")
+    if not isinstance(n_frames, int) or n_frames < 1:
+        raise InputError(f"{folder / 'take.json'}: n_frames must be a positive integer; got {n_frames!r}")
+    listed = info.get("files") or {}
+    files = {Path(name).name: folder / Path(name).name for name in listed.values()
+             if (folder / Path(name).name).is_file()}
+    animation = Path(listed.get("animation", "animation.glb")).name
+    if animation not in files:
+        raise InputError(f"{folder}: no {animation} here to show; run `keyshape run` again")
+    video = Path(info["video"]) if info.get("video") else None
+    keys_name = Path(listed.get("keys", "keys.json")).name
+    return Take(folder, float(fps), n_frames, info.get("neutral_frame"),
+                video if video is not None and video.is_file() else None, files,
+                _key_frames(files.get(keys_name), video), animation)
+
+
+def _key_frames(path: Path | None, video: Path | None) -> dict[str, int]:
+    """Key name -> source frame, for the keys taken from this take's video."""
+    if path is None:
+        return {}
+    try:
+        regions = json.loads(path.read_text()).get("regions", {})
+        keys = [key for region in regions.values() for key in region.get("keys", [])]
+        return {str(key["name"]): int(key["frame"]) for key in keys
+                if video is None or key.get("take") in (None, video.name)}
+    except (ValueError, TypeError, KeyError, AttributeError):
+        return {}  # the key file is a nicety here: the page works without it
+
+
+# --------------------------------------------------------------------------- byte ranges
+
+_RANGE = re.compile(r"bytes=(\d*)-(\d*)")
+
+
+class RangeNotSatisfiable(Exception):
+    """A ``Range`` header whose only range lies outside the file."""
+
+
+def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
+    """The inclusive byte range ``(first, last)`` a ``Range`` header asks for.
+
+    None means "send the whole file": no header, a malformed one, or several ranges
+    (which a server may ignore, RFC 9110 14.2).
+
+    Raises
+    ------
+    RangeNotSatisfiable
+        If the range starts past the end of the file, or is an empty suffix.
+
+    Examples
+    --------
+    >>> parse_range("bytes=0-99", 1000), parse_range("bytes=900-", 1000)
+    ((0, 99), (900, 999))
+    >>> parse_range("bytes=-100", 1000), parse_range("bytes=10-5000", 1000)
+    ((900, 999), (10, 999))
+    >>> parse_range(None, 1000) is None and parse_range("bytes=0-1,5-9", 1000) is None
+    True
+    """
+    match = _RANGE.fullmatch(header.strip()) if header else None
+    if match is None or match.group(1) == match.group(2) == "":
+        return None
+    first, last = match.group(1), match.group(2)
+    if first == "":  # suffix: the last N bytes
+        if int(last) == 0 or size == 0:
+            raise RangeNotSatisfiable(header)
+        return max(size - int(last), 0), size - 1
+    first, last = int(first), (int(last) if last else size - 1)
+    if first >= size:
+        raise RangeNotSatisfiable(header)
+    if last < first:
+        return None
+    return first, min(last, size - 1)
+
+
+# --------------------------------------------------------------------------- the server
+
+
+class ViewerServer(ThreadingHTTPServer):
+    """An HTTP server for one take; ``url`` is the page's address."""
+
+    daemon_threads = True
+
+    def __init__(self, take: Take, address: tuple[str, int]):
+        self.take = take
+        super().__init__(address, _Handler)
+
+    @property
+    def url(self) -> str:
+        host, port = self.server_address[:2]
+        return f"http://{host}:{port}/"
+
+    def handle_error(self, request, client_address) -> None:
+        import sys
+
+        if not isinstance(sys.exc_info()[1], ConnectionError):  # a browser cancelling a range
+            super().handle_error(request, client_address)
+
+
+def make_server(folder: str | Path, *, port: int = 0, host: str = "127.0.0.1") -> ViewerServer:
+    """A server (not yet started) for the output folder ``folder``.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Output folder of ``keyshape run`` or ``keyshape demo`` (with ``take.json``).
+    port : int
+        TCP port; 0 lets the system choose a free one (see ``server.url``).
+    host : str
+        Interface to listen on; the loopback one by default, so nothing leaves the machine.
+
+    Returns
+    -------
+    ViewerServer
+        Call ``serve_forever()`` (in a thread, if need be) and ``shutdown()``; use as a
+        context manager to close the socket.
+
+    Raises
+    ------
+    InputError
+        If the folder is not a take (see :func:`load_take`).
+    OSError
+        If the port cannot be bound.
+    """
+    return ViewerServer(load_take(folder), (host, port))
+
+
+class _Handler(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+    server: ViewerServer
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+        self._respond(body=True)
+
+    def do_HEAD(self) -> None:  # noqa: N802
+        self._respond(body=False)
+
+    def log_message(self, format, *args) -> None:  # noqa: A002 (http.server's signature)
+        pass  # the command prints the URL; per-request lines would drown it
+
+    def _respond(self, *, body: bool) -> None:
+        path = unquote(urlsplit(self.path).path)
+        take = self.server.take
+        if path == "/api/take":
+            return self._send_bytes(json.dumps(take.as_json()).encode(), "application/json", body)
+        target = self._route(path, take)
+        if target is None:
+            return self._send_bytes(b"not found\n", "text/plain", body, HTTPStatus.NOT_FOUND)
+        self._send_file(target, body)
+
+    @staticmethod
+    def _route(path: str, take: Take) -> Path | None:
+        if path in ("/", "/index.html"):
+            return STATIC / "index.html"
+        if path.startswith("/static/"):
+            name = path.removeprefix("/static/")
+            target = STATIC / name
+            return target if "/" not in name and name and target.is_file() else None
+        if path == "/media/video":
+            return take.video
+        if path.startswith("/media/"):
+            return take.files.get(path.removeprefix("/media/"))
+        return None
+
+    def _send_bytes(self, data: bytes, mime: str, body: bool, status=HTTPStatus.OK) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", mime)
+        self.send_header("Content-Length", str(len(data)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        if body:
+            self.wfile.write(data)
+
+    def _send_file(self, path: Path, body: bool) -> None:
+        size = path.stat().st_size
+        try:
+            span = parse_range(self.headers.get("Range"), size)
+        except RangeNotSatisfiable:
+            self.send_response(HTTPStatus.REQUESTED_RANGE_NOT_SATISFIABLE)
+            self.send_header("Content-Range", f"bytes */{size}")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            return
+        first, last = span if span is not None else (0, size - 1)
+        self.send_response(HTTPStatus.PARTIAL_CONTENT if span is not None else HTTPStatus.OK)
+        self.send_header("Content-Type", _MIME.get(path.suffix.lower())
+                         or mimetypes.guess_type(path.name)[0] or "application/octet-stream")
+        self.send_header("Content-Length", str(last - first + 1))
+        self.send_header("Accept-Ranges", "bytes")
+        self.send_header("Cache-Control", "no-cache")
+        if span is not None:
+            self.send_header("Content-Range", f"bytes {first}-{last}/{size}")
+        self.end_headers()
+        if body:
+            self._copy(path, first, last - first + 1)
+
+    def _copy(self, path: Path, offset: int, length: int) -> None:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            while length > 0:
+                chunk = fh.read(min(_CHUNK, length))
+                if not chunk:
+                    break
+                self.wfile.write(chunk)
+                length -= len(chunk)
+
