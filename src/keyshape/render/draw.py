@@ -1,0 +1,154 @@
+"""2D overlays on RGB pictures: landmarks, captions and the weight-bar strip.
+
+The only module of the renderer that imports Pillow (for resizing and text). Pictures
+are ``(height, width, 3) uint8`` arrays in and out.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+
+from ..exceptions import MissingDependencyError
+
+__all__ = ["REGION_COLOURS", "OTHER_COLOUR", "region_palette", "landmark_colours", "resize_to_height",
+           "draw_landmarks", "caption", "WeightStrip"]
+
+# Okabe–Ito colours (distinguishable with colour-blindness), one per region in order.
+REGION_COLOURS = ((230, 159, 0), (86, 180, 233), (0, 158, 115), (240, 228, 66), (0, 114, 178),
+                  (213, 94, 0), (204, 121, 167))
+OTHER_COLOUR = (170, 170, 170)
+STRIP_BACKGROUND = (24, 25, 28)
+
+
+def _pil():
+    try:
+        from PIL import Image, ImageDraw, ImageFont
+    except ImportError:
+        raise MissingDependencyError("pillow") from None
+    return Image, ImageDraw, ImageFont
+
+
+@cache
+def _font(size: int):
+    _, _, image_font = _pil()
+    try:
+        return image_font.load_default(size=size)
+    except (TypeError, OSError, ImportError):  # Pillow without FreeType: fixed bitmap font
+        return image_font.load_default()
+
+
+def region_palette(regions) -> dict[str, tuple[int, int, int]]:
+    """Colour ``(r, g, b)`` of each region name, in order (cycling through :data:`REGION_COLOURS`)."""
+    return {name: REGION_COLOURS[i % len(REGION_COLOURS)] for i, name in enumerate(regions)}
+
+
+def landmark_colours(regions: dict[str, np.ndarray], n_landmarks: int) -> np.ndarray:
+    """(n_landmarks, 3) uint8: each landmark in its region's colour, grey outside every region."""
+    out = np.tile(np.array(OTHER_COLOUR, np.uint8), (n_landmarks, 1))
+    for name, colour in region_palette(regions).items():
+        out[np.asarray(regions[name], dtype=int)] = colour
+    return out
+
+
+def resize_to_height(image: np.ndarray, height: int) -> np.ndarray:
+    """``image (h, w, 3) uint8`` scaled (bilinear) to ``height`` rows, aspect kept, even width."""
+    image_mod, _, _ = _pil()
+    h, w = image.shape[:2]
+    width = max(2, int(round(w * height / h / 2)) * 2)
+    if (h, w) == (height, width):
+        return image
+    return np.asarray(image_mod.fromarray(image).resize((width, height), image_mod.BILINEAR))
+
+
+def draw_landmarks(image: np.ndarray, points: np.ndarray, colours: np.ndarray, *,
+                   edges: np.ndarray | None = None, radius: float = 1.6) -> np.ndarray:
+    """Landmarks (and contour lines) drawn onto a copy of ``image``.
+
+    Parameters
+    ----------
+    image : (height, width, 3) uint8
+    points : (n_landmarks, 2) float, pixels of ``image``; a NaN frame draws nothing
+    colours : (n_landmarks, 3) uint8
+    edges : (n_edges, 2) int, optional, keyword-only
+        Contour segments, drawn in the colour of their first landmark.
+    radius : float, keyword-only
+    """
+    image_mod, image_draw, _ = _pil()
+    canvas = image_mod.fromarray(np.ascontiguousarray(image))
+    if not np.isfinite(points).all():
+        return np.asarray(canvas)
+    pen = image_draw.Draw(canvas)
+    for i, j in ([] if edges is None else edges):
+        pen.line([tuple(points[i]), tuple(points[j])], fill=tuple(int(c) for c in colours[i]), width=1)
+    for (x, y), colour in zip(points, colours.tolist()):
+        pen.ellipse([x - radius, y - radius, x + radius, y + radius], fill=tuple(colour))
+    return np.asarray(canvas)
+
+
+def caption(image: np.ndarray, text: str, *, xy=(8, 6), size: int = 14) -> np.ndarray:
+    """``text`` written (white on a dark box) at ``xy`` on a copy of ``image``."""
+    image_mod, image_draw, _ = _pil()
+    canvas = image_mod.fromarray(np.ascontiguousarray(image))
+    pen = image_draw.Draw(canvas)
+    box = pen.textbbox(xy, text, font=_font(size))
+    pen.rectangle([box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3], fill=(0, 0, 0))
+    pen.text(xy, text, fill=(255, 255, 255), font=_font(size))
+    return np.asarray(canvas)
+
+
+class WeightStrip:
+    """A strip of vertical bars, one per weight, labelled and coloured by region.
+
+    The labels and frame are drawn once; :meth:`draw` only fills the bars.
+
+    Parameters
+    ----------
+    names : tuple of n_channels str
+    colours : (n_channels, 3) uint8
+    width, height : int
+    """
+
+    def __init__(self, names, colours: np.ndarray, width: int, height: int):
+        self.names = tuple(names)
+        self.colours = np.asarray(colours, np.uint8)
+        self.width, self.height = int(width), int(height)
+        self.cell = self.width / max(len(self.names), 1)
+        self.font_size = int(np.clip(self.cell / (0.62 * max((len(n) for n in self.names), default=1)), 7, 13))
+        self.bar_top, self.bar_bottom = 8, self.height - self.font_size - 10
+        self.background = self._background()
+
+    def _background(self) -> np.ndarray:
+        image_mod, image_draw, _ = _pil()
+        canvas = image_mod.new("RGB", (self.width, self.height), STRIP_BACKGROUND)
+        pen = image_draw.Draw(canvas)
+        font = _font(self.font_size)
+        for i, name in enumerate(self.names):
+            x0, x1 = self._bar_span(i)
+            pen.rectangle([x0, self.bar_top, x1 - 1, self.bar_bottom - 1], outline=(60, 62, 68))
+            centre = (x0 + x1) / 2
+            pen.text((centre, self.height - 4), name, fill=tuple(int(c) for c in self.colours[i]),
+                     font=font, anchor="ms")
+        return np.asarray(canvas).copy()
+
+    def _bar_span(self, i: int) -> tuple[int, int]:
+        pad = max(2, int(self.cell * 0.18))
+        return int(i * self.cell) + pad, int((i + 1) * self.cell) - pad
+
+    def draw(self, values: np.ndarray) -> np.ndarray:
+        """The strip ``(height, width, 3) uint8`` for ``values (n_channels,)`` in [0, 1].
+
+        NaN draws an empty bar; values above 1 fill the bar and are marked white at the top.
+        """
+        out = self.background.copy()
+        full = self.bar_bottom - self.bar_top - 2
+        for i, value in enumerate(np.asarray(values, dtype=float)):
+            if not np.isfinite(value) or value <= 0:
+                continue
+            x0, x1 = self._bar_span(i)
+            top = self.bar_bottom - 1 - int(round(min(value, 1.0) * full))
+            out[top:self.bar_bottom - 1, x0 + 1:x1 - 1] = self.colours[i]
+            if value > 1.0:
+                out[self.bar_top + 1:self.bar_top + 3, x0 + 1:x1 - 1] = 255
+        return out
