@@ -1,0 +1,447 @@
+"""Exact bounded least squares for many frames that share one matrix (Gram form).
+
+Every frame ``t`` solves the strictly convex quadratic programme
+
+.. math::
+
+    \\min_{w} \\tfrac12 w^T G w - c_t^T w
+    \\quad\\text{s.t.}\\quad 0 \\le w \\le u, \\;\\; (\\mathbf 1^T w \\le 1),
+
+which is ``min ‖A w − b_t‖²`` written with ``G = AᵀA`` and ``c_t = Aᵀ b_t`` (Bro & de Jong 1997
+precompute the same cross products). ``G`` is shared by all frames, so everything runs for all
+frames in lockstep:
+
+1. *Block principal pivoting* (Júdice & Pires 1994; Kim & Park 2011), started from the signs of
+   the unconstrained solution. Each sweep classifies every variable of every frame as at its
+   lower bound, free, or at its upper bound, solves all the resulting reduced systems at once
+   (:func:`free_solve`) and exchanges every variable that breaks a KKT condition. Frames leave
+   the batch as soon as they satisfy the KKT conditions; most need two or three sweeps.
+2. Frames on which the block exchanges stop making progress (Kim & Park's trigger for their
+   backup rule) finish with the *primal active-set method* (Lawson & Hanson 1974, ch. 23,
+   generalised to two-sided bounds as in Nocedal & Wright 2006, Alg. 16.3): monotone in the
+   objective, hence safe on ill-conditioned frames where rounding could make exchanges cycle.
+3. The optional constraint ``Σ w ≤ 1`` is handled through its multiplier ``ν ≥ 0``: the box
+   solution for ``c − ν·1`` has a sum that is piecewise linear and non-increasing in ``ν``, and
+   a bracketed Newton iteration on it lands on the exact ``ν`` once it reaches the right piece.
+
+References
+----------
+Lawson, C. L. & Hanson, R. J. (1974). *Solving Least Squares Problems*, ch. 23. Prentice-Hall.
+Júdice, J. J. & Pires, F. M. (1994). A block principal pivoting algorithm for large-scale
+strictly monotone linear complementarity problems. *Computers & OR* 21(5), 587–596.
+Bro, R. & de Jong, S. (1997). A fast non-negativity-constrained least squares algorithm.
+*J. Chemometrics* 11(5), 393–401.
+Kim, J. & Park, H. (2011). Fast nonnegative matrix factorization: an active-set-like method and
+comparisons. *SIAM J. Sci. Comput.* 33(6), 3261–3281.
+Nocedal, J. & Wright, S. J. (2006). *Numerical Optimization*, 2nd ed., §16.5. Springer.
+Golub, G. H. & Van Loan, C. F. (2013). *Matrix Computations*, 4th ed., §4.2. Johns Hopkins.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from .exceptions import ConvergenceWarning
+
+LOWER, FREE, UPPER = 0, 1, 2
+_RIDGE = 1e-10  # relative ridge added to a rank-deficient G (see Gram)
+_TOL = 1e-11  # relative tolerance of the KKT tests
+_CHUNK = 2**22  # elements per batched factorisation: bounds the (f, f, n) stack to 32 MB
+_SMALL_BATCH = 48  # below this many systems of one size, LAPACK per system is cheaper
+
+
+@dataclass(frozen=True, eq=False)
+class Gram:
+    """The matrix shared by every frame: ``G`` (made positive definite) and its inverse ``H``.
+
+    Duplicate or zero keys, or fewer equations than keys, make ``G = AᵀA`` singular and the
+    least-squares weights non-unique. Then a tiny ridge ``δ = 1e-10 · λ_max(G)`` (Tikhonov) is
+    added: it picks the smallest-norm blend among equally good ones and changes the squared
+    residual by about ``δ‖w‖²``. A well-conditioned ``G`` is used exactly as given.
+
+    Attributes
+    ----------
+    G : (K, K) float, symmetric positive definite
+    H : (K, K) float, ``G⁻¹``
+    ridge : float, the ``δ`` added to the diagonal (0 when none)
+    use_inverse : bool, whether ``H`` is accurate enough (``cond(G) ≤ 1e5``) for the
+        Schur-complement solves of :func:`free_solve`
+    """
+
+    G: np.ndarray
+    H: np.ndarray
+    ridge: float
+    use_inverse: bool
+
+    @classmethod
+    def from_matrix(cls, G: np.ndarray) -> Gram:
+        """Regularise (if needed) and invert a ``(K, K)`` positive semi-definite ``G``."""
+        G = 0.5 * (G + G.T)
+        eig = np.linalg.eigvalsh(G)
+        top = max(float(eig[-1]), 0.0)
+        ridge = 0.0 if eig[0] > 10 * _RIDGE * top else max(_RIDGE * top, 1e-150)
+        G = G + ridge * np.eye(len(G))
+        H = cho_solve(cho_factor(G, lower=True), np.eye(len(G)))
+        cond = (top + ridge) / (eig[0] + ridge)
+        return cls(G, 0.5 * (H + H.T), ridge, bool(cond <= 1e5))
+
+
+# --------------------------------------------------------------------------- reduced solves
+
+
+def free_solve(gram: Gram, free: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``z`` with ``z_F = G_FF⁻¹ rhs_F`` and ``z = 0`` off the free set ``F``, row by row.
+
+    A row with few free variables is solved directly on ``G_FF``. A row with few *fixed*
+    variables ``N`` uses ``H = G⁻¹`` and the Schur complement instead,
+    ``z = H r − H_{:N} H_NN⁻¹ (H r)_N`` with ``r`` the right-hand side zeroed on ``N``
+    (Golub & Van Loan §3.4), so no system solved has more than ``K/2`` unknowns.
+
+    Parameters
+    ----------
+    gram : Gram, the shared ``G`` and ``H = G⁻¹``, each (K, K)
+    free : (n, K) bool
+    rhs : (n, K) float
+
+    Returns
+    -------
+    (n, K) float
+    """
+    k = free.shape[1]
+    dual = 2 * free.sum(axis=1) > k if gram.use_inverse else np.zeros(len(free), bool)
+    z = np.empty(rhs.shape)
+    z[~dual] = masked_solve(gram.G, free[~dual], rhs[~dual])
+    if dual.any():
+        z0 = (rhs[dual] * free[dual]) @ gram.H
+        lam = masked_solve(gram.H, ~free[dual], z0)  # H_NN⁻¹ (H r)_N, zero on F
+        z[dual] = (z0 - lam @ gram.H) * free[dual]
+    return z
+
+
+def masked_solve(G: np.ndarray, free: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``z`` with ``z_F = G_FF⁻¹ rhs_F`` and ``z = 0`` off ``F``, for every row's own ``F``.
+
+    Rows are bucketed by ``|F|``; each bucket's compact ``|F| × |F|`` systems are gathered
+    batch-last and solved by a vectorised Cholesky factorisation.
+
+    Parameters
+    ----------
+    G : (K, K) float, symmetric positive definite
+    free : (n, K) bool
+    rhs : (n, K) float
+
+    Returns
+    -------
+    (n, K) float
+    """
+    out = np.zeros(rhs.shape)
+    counts = free.sum(axis=1)
+    order = np.argsort(counts, kind="stable")
+    edges = np.searchsorted(counts[order], np.arange(G.shape[0] + 2))
+    for size in range(1, G.shape[0] + 1):
+        rows = order[edges[size] : edges[size + 1]]
+        if len(rows):
+            cols = np.nonzero(free[rows])[1].reshape(len(rows), size)  # (n_b, size)
+            out[rows[:, None], cols] = _compact_solve(G, cols, rhs[rows[:, None], cols])
+    return out
+
+
+def _compact_solve(G, cols, rhs):
+    """(n_b, f): ``G[c, c]⁻¹ r`` for each row's column set ``c`` and right-hand side ``r``."""
+    if cols.shape[1] == G.shape[0]:  # every variable free: one factorisation serves all rows
+        return np.linalg.solve(G, rhs.T).T
+    if len(cols) < _SMALL_BATCH:
+        return np.linalg.solve(G[cols[:, :, None], cols[:, None, :]], rhs[..., None])[..., 0]
+    out = np.empty(rhs.shape)
+    step = max(1, _CHUNK // cols.shape[1] ** 2)
+    for lo in range(0, len(cols), step):
+        c = cols[lo : lo + step]
+        # gather G[c, c] as (n_c, f, f), then lay it out batch-last for the vectorised kernel
+        M = np.ascontiguousarray(G[c[:, :, None], c[:, None, :]].transpose(1, 2, 0))
+        out[lo : lo + step] = _batched_cho_solve(_batched_cholesky(M), rhs[lo : lo + step].T).T
+    return out
+
+
+def _batched_cholesky(M):
+    """Lower Cholesky factors ``L (f, f, n)`` of a batch-last stack ``M (f, f, n)``."""
+    L = np.zeros_like(M)
+    for j in range(M.shape[0]):
+        # L[j:, j] = (M[j:, j] − L[j:, :j] · L[j, :j]) / L[j, j]   (Golub & Van Loan Alg. 4.2.1)
+        col = M[j:, j] - np.einsum("ikn,kn->in", L[j:, :j], L[j, :j]) if j else M[j:, j]
+        L[j, j] = np.sqrt(col[0])
+        L[j + 1 :, j] = col[1:] / L[j, j]
+    return L
+
+
+def _batched_cho_solve(L, r):
+    """``x (f, n)`` with ``L Lᵀ x = r`` for a batch-last stack of factors ``L (f, f, n)``."""
+    f = L.shape[0]
+    y = np.empty_like(r)
+    for i in range(f):  # forward substitution: L y = r
+        y[i] = (r[i] - np.einsum("kn,kn->n", L[i, :i], y[:i])) / L[i, i]
+    x = np.empty_like(r)
+    for i in range(f - 1, -1, -1):  # back substitution: Lᵀ x = y
+        x[i] = (y[i] - np.einsum("kn,kn->n", L[i + 1 :, i], x[i + 1 :])) / L[i, i]
+    return x
+
+
+# --------------------------------------------------------------------------- box constraints
+
+
+def initial_state(X0: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """(n, K) int8 classification of an unconstrained guess ``X0``: below 0, inside, above ``u``."""
+    return np.where(X0 < 0, LOWER, np.where(X0 > upper, UPPER, FREE)).astype(np.int8)
+
+
+def _evaluate(gram, C, upper, state):
+    """Subspace minimiser ``x`` (fixed variables at their bounds) and its gradient ``Gx − c``."""
+    fixed = np.where(state == UPPER, upper, 0.0)  # (n, K): value of the non-free variables
+    x = free_solve(gram, state == FREE, C - fixed @ gram.G) + fixed
+    return x, x @ gram.G - C
+
+
+def _tolerances(x, C, gram, upper):
+    """(n, 1) primal and dual KKT tolerances, relative to each row's scale."""
+    scale = 1.0 + np.abs(np.where(np.isfinite(upper), np.minimum(np.abs(x), upper), x)).max(
+        axis=1, keepdims=True
+    )
+    g_scale = np.abs(C).max(axis=1, keepdims=True) + np.abs(gram.G).max() * scale
+    return _TOL * scale, _TOL * g_scale
+
+
+def _dual_violations(y, state, tol_y):
+    """(n, K) float ≥ 0: how far each bound variable's multiplier has the wrong sign."""
+    wrong = np.where(state == LOWER, -y, np.where(state == UPPER, y, 0.0))
+    return np.where(wrong > tol_y, wrong, 0.0)
+
+
+def box_solve(gram: Gram, C: np.ndarray, upper: np.ndarray, state: np.ndarray):
+    """Exact solution of ``min ½wᵀGw − cᵀw`` s.t. ``0 ≤ w ≤ u`` for every row of ``C``.
+
+    Parameters
+    ----------
+    gram : Gram, the shared ``G`` and ``G⁻¹``
+    C : (n, K) float, finite
+    upper : (K,) float, ``inf`` where unbounded
+    state : (n, K) int8, initial guess (LOWER, FREE, UPPER) of each variable
+
+    Returns
+    -------
+    X : (n, K) float, the solutions, within ``[0, u]``
+    state : (n, K) int8, their classification
+    """
+    X, state, stalled = _block_pivoting(gram, C, upper, state.astype(np.int8))
+    if len(stalled):
+        X[stalled], state[stalled] = _active_set(gram, C[stalled], upper, X[stalled], state[stalled])
+    return np.clip(X, 0.0, upper), state
+
+
+def _block_pivoting(gram, C, upper, state, max_sweeps=None):
+    """Kim & Park's block principal pivoting; returns ``X, state`` and the stalled rows."""
+    n, k = C.shape
+    X, state = np.empty((n, k)), state.copy()
+    todo = np.arange(n)
+    best, budget = np.full(n, k + 1), np.full(n, 3)
+    for _ in range(max_sweeps or 2 * k + 10):
+        x, y = _evaluate(gram, C[todo], upper, state[todo])
+        tol_x, tol_y = _tolerances(x, C[todo], gram, upper)
+        free = state[todo] == FREE
+        bad = (free & ((x < -tol_x) | (x > upper + tol_x))) | (
+            _dual_violations(y, state[todo], tol_y) > 0
+        )
+        n_bad = bad.sum(axis=1)
+        X[todo] = x
+        # Kim & Park: exchange everything while the infeasible count falls (or for 3 sweeps)
+        improved = n_bad < best[todo]
+        best[todo] = np.where(improved, n_bad, best[todo])
+        budget[todo] = np.where(improved, 3, budget[todo] - 1)
+        keep = (n_bad > 0) & (budget[todo] >= 0)
+        todo, x, bad = todo[keep], x[keep], bad[keep]
+        if not len(todo):
+            break
+        to_bound = np.where(x < 0, LOWER, UPPER)
+        state[todo] = np.where(bad, np.where(state[todo] == FREE, to_bound, FREE), state[todo])
+    return X, state, np.union1d(np.flatnonzero(budget < 0), todo)
+
+
+def _active_set(gram, C, upper, X, state, max_iter=None):
+    """Primal active-set iterations from the feasible start ``clip(X)`` (Lawson & Hanson 1974).
+
+    Each step moves to the minimiser of the current subspace, or as far towards it as the
+    bounds allow, fixing the variable that blocks; at a subspace minimiser the bound variable
+    with the most wrong-signed multiplier is released. A variable released on a rounding-level
+    multiplier that blocks at once is not released again (Lawson & Hanson's safeguard).
+    """
+    n, k = C.shape
+    X = np.where(state == LOWER, 0.0, np.where(state == UPPER, upper, np.clip(X, 0.0, upper)))
+    state, frozen, released = state.copy(), np.zeros((n, k), bool), np.full(n, -1)
+    todo = np.arange(n)
+    for _ in range(max_iter or 5 * k + 20):
+        x, s = X[todo], state[todo]
+        xs, y = _evaluate(gram, C[todo], upper, s)
+        tol_x, tol_y = _tolerances(xs, C[todo], gram, upper)
+        out_of_box = (s == FREE) & ((xs < -tol_x) | (xs > upper + tol_x))
+        blocked = out_of_box.any(axis=1)
+        X[todo[~blocked]] = np.clip(xs[~blocked], 0.0, upper)
+        wrong = _dual_violations(y, s, tol_y) * ~frozen[todo]
+        release = ~blocked & wrong.any(axis=1)
+        _step_to_block(X, state, frozen, released, todo[blocked], xs[blocked], out_of_box[blocked], upper)
+        rows, j = todo[release], np.argmax(wrong[release], axis=1)
+        state[rows, j], released[rows] = FREE, j
+        todo = todo[blocked | release]
+        if not len(todo):
+            return X, state
+    warnings.warn(
+        f"the active-set solver stopped after {max_iter or 5 * k + 20} steps with {len(todo)} "
+        "frames unsolved; their weights are feasible but not optimal",
+        ConvergenceWarning,
+        stacklevel=4,
+    )
+    return X, state
+
+
+def _step_to_block(X, state, frozen, released, rows, xs, out_of_box, upper):
+    """Move ``X[rows]`` towards ``xs`` until the first free variable reaches a bound; fix it."""
+    x = X[rows]
+    # α_i = distance to the bound over distance to the target, for the variables leaving the box
+    target = np.where(xs < 0, 0.0, upper)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha = np.where(out_of_box, (target - x) / (xs - x), np.inf)
+    j = np.argmin(alpha, axis=1)
+    at = (np.arange(len(rows)), j)
+    a = np.clip(alpha[at], 0.0, 1.0)[:, None]
+    x = np.clip(x + a * (xs - x), 0.0, upper)
+    x[at] = target[at]  # the blocking variable lands exactly on its bound
+    hit = (state[rows] == FREE) & ((x <= 0.0) | (x >= upper))
+    X[rows] = x
+    state[rows] = np.where(hit, np.where(x <= 0.0, LOWER, UPPER), state[rows])
+    # Lawson & Hanson's safeguard: a just-released variable that blocks at once stays fixed
+    again = (a[:, 0] <= _TOL) & (released[rows] == j)
+    frozen[rows[again], j[again]] = True
+    released[rows] = -1
+
+
+# --------------------------------------------------------------------------- sum ≤ 1
+
+
+def sum_newton(gram, C, upper, X, state, a, *, max_iter=200):
+    """Enforce ``aᵀw ≤ 1`` (``a > 0``) on the rows whose box solution ``X`` breaks it.
+
+    Safeguarded Newton iteration on ``φ(ν) = aᵀw(ν) − 1``, where ``w(ν)`` is the box
+    solution for ``c − ν a``. ``φ`` is piecewise linear and non-increasing, its slope on the
+    current piece is ``−a_Fᵀ G_FF⁻¹ a_F``, and the root lies in ``[0, max_i c_i / a_i]``.
+
+    Parameters
+    ----------
+    gram : Gram
+    C : (n, K) float
+    upper : (K,) float
+    X : (n, K) float, box solutions (``ν = 0``)
+    state : (n, K) int8, their classification
+    a : (K,) float > 0, the constraint's coefficients (all ones for ``Σ w ≤ 1``)
+
+    Returns
+    -------
+    (n, K) float, solutions of the problem with the constraint
+    """
+    X = X.copy()
+    todo = np.flatnonzero(X @ a > 1.0)
+    lo, hi = np.zeros(len(todo)), np.maximum((C[todo] / a).max(axis=1), 0.0)
+    nu, x, s = np.zeros(len(todo)), X[todo], state[todo]
+    for _ in range(max_iter):
+        phi = x @ a - 1.0
+        done = np.abs(phi) <= 10 * _TOL
+        X[todo[done]] = x[done]
+        keep = ~done
+        todo, lo, hi, nu, x, s, phi = (v[keep] for v in (todo, lo, hi, nu, x, s, phi))
+        if not len(todo):
+            break
+        lo, hi = np.where(phi > 0, nu, lo), np.where(phi > 0, hi, nu)
+        nu = _newton_step(gram, s, a, nu, phi, lo, hi)
+        x, s = box_solve(gram, C[todo] - nu[:, None] * a, upper, s)
+    else:
+        X[todo] = x
+    return X
+
+
+def _newton_step(gram, state, a, nu, phi, lo, hi):
+    """Newton step on the current linear piece, or bisection when it leaves ``(lo, hi)``."""
+    free = state == FREE
+    slope = free_solve(gram, free, free * a) @ a  # a_Fᵀ G_FF⁻¹ a_F
+    with np.errstate(divide="ignore", invalid="ignore"):
+        step = nu + phi / slope
+    ok = (slope > 0) & (step > lo) & (step < hi)
+    return np.where(ok, step, 0.5 * (lo + hi))
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def nnls_gram(G, C, upper=None, convex=False):
+    """Exact per-row solution of ``min ½wᵀGw − cᵀw`` s.t. ``0 ≤ w ≤ u`` (and ``Σw ≤ 1``).
+
+    The problem is first equilibrated, ``w = D v`` with ``D = diag(G)^{-1/2}`` (Jacobi
+    scaling, Golub & Van Loan §3.5.2), so keys of very different magnitude cost no accuracy;
+    the bounds become ``v ≤ u / d`` and the sum constraint ``dᵀv ≤ 1``.
+
+    Parameters
+    ----------
+    G : (K, K) float, symmetric positive semi-definite
+    C : (n, K) float; rows with a NaN give NaN rows
+    upper : (K,) float or None, ``inf`` where unbounded
+    convex : bool, add ``Σ w ≤ 1``
+
+    Returns
+    -------
+    (n, K) float
+    """
+    n, k = C.shape
+    upper = np.full(k, np.inf) if upper is None else upper
+    out = np.full((n, k), np.nan)
+    rows = np.flatnonzero(np.isfinite(C).all(axis=1))
+    if not len(rows) or not k:
+        out[rows] = 0.0
+        return out
+    d = equilibration(G)
+    gram, C, u = Gram.from_matrix(d[:, None] * G * d), C[rows] * d, upper / d
+    V, state = box_solve(gram, C, u, initial_state(C @ gram.H, u))
+    if gram.ridge:
+        V = _undo_ridge(gram, C, u, V, state)
+    if convex:
+        V = sum_newton(gram, C, u, V, state, d)
+    W = np.where(V >= u, upper, np.minimum(V * d, upper))  # a bound stays exact
+    out[rows] = cap_sum(W) if convex else W
+    return out
+
+
+def _undo_ridge(gram, C, upper, V, state, steps=3):
+    """Iterated Tikhonov on each frame's free set: the ridge's bias shrinks as ``(δ/(λ+δ))^steps``.
+
+    With the classification fixed, ``v_F ← v_F + (G_FF + δI)⁻¹ (c − G v)_F`` converges to the
+    unregularised least-squares fit (Engl, Hanke & Neubauer 1996, §5.1).
+    """
+    free = state == FREE
+    G0 = gram.G - gram.ridge * np.eye(len(gram.G))
+    for _ in range(steps):
+        V = V + free_solve(gram, free, C - V @ G0)
+    return np.clip(V, 0.0, upper)
+
+
+def cap_sum(W: np.ndarray) -> np.ndarray:
+    """Rows of ``W ≥ 0`` rescaled, where needed, until ``Σ w ≤ 1`` holds in floating point."""
+    W = W.copy()
+    over = np.flatnonzero(W.sum(axis=1) > 1.0)
+    W[over] /= W[over].sum(axis=1, keepdims=True)
+    while len(over := np.flatnonzero(W.sum(axis=1) > 1.0)):
+        W[over] *= 1.0 - np.finfo(float).eps
+    return W
+
+
+def equilibration(G: np.ndarray) -> np.ndarray:
+    """(K,) float: Jacobi scaling ``1/√G_ii`` (1 for an all-zero key)."""
+    diag = np.diag(G)
+    return 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))

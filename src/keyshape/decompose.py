@@ -1,0 +1,210 @@
+"""Stage 4, decompose: every frame as a non-negative blend of the key shapes.
+
+Chuang & Bregler write each frame as ``s_t ≈ s_neutral + Σ_i w_i (k_i − s_neutral)``,
+``w ≥ 0`` (the paper's Eq. 1 in delta form), solved per region by non-negative least squares.
+For a region with landmark indices ``keys.regions[r]`` and keys ``keys.keys_of(r)``::
+
+    A   = deltas of the region's keys at its landmarks, flattened   (m, K)   m = n_landmarks·n_dims
+    b_t = aligned frame t at those landmarks − neutral, flattened   (m,)
+
+``A`` is the same for every frame, so the solvers work on the Gram form ``G = AᵀA`` (K × K) and
+``c_t = Aᵀ b_t`` and treat all frames at once:
+
+* :func:`solve_nnls` — exact per-frame (bounded) NNLS, vectorised over frames
+  (:mod:`keyshape._nnls`: block principal pivoting plus a Lawson–Hanson active-set finish);
+* :func:`solve_spacetime` — the whole sequence at once with a second-difference smoothness
+  term, zero-phase by construction (:mod:`keyshape._spacetime`);
+* :func:`solve_weights` — the stage function: Track + KeyShapes → Weights, region by region.
+
+References
+----------
+Chuang, E. & Bregler, C. (2002). Performance driven facial animation using blendshape
+interpolation. Stanford CS-TR-2002-02.
+Lawson, C. L. & Hanson, R. J. (1974). *Solving Least Squares Problems*. Prentice-Hall.
+Kim, J. & Park, H. (2011). Fast nonnegative matrix factorization: an active-set-like method and
+comparisons. *SIAM J. Sci. Comput.* 33(6), 3261–3281.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._nnls import nnls_gram
+from .containers import KeyShapes, Track, Weights
+from .exceptions import InputError
+
+__all__ = ["solve_nnls", "solve_weights"]
+
+
+def solve_nnls(
+    A: np.ndarray, B: np.ndarray, *, upper: float | np.ndarray | None = None, convex: bool = False
+) -> np.ndarray:
+    """Exact non-negative least squares for many frames sharing one matrix.
+
+    Each row ``b_t`` of ``B`` gives
+
+    .. math::
+
+        w_t = \\arg\\min_w \\lVert A w - b_t \\rVert^2
+        \\quad\\text{s.t.}\\quad 0 \\le w \\le u, \\;\\; (\\textstyle\\sum_i w_i \\le 1),
+
+    identical (to rounding) to ``scipy.optimize.nnls(A, b_t)`` when there is no upper
+    bound, but all frames are solved together: the Gram form ``G = AᵀA``, ``c_t = Aᵀb_t``
+    and block principal pivoting in lockstep over the frames (Kim & Park 2011), finished
+    by a Lawson–Hanson active-set step on any frame where pivoting stalls.
+
+    Parameters
+    ----------
+    A : (m, n_keys) float
+        The key deltas as columns.
+    B : (n_frames, m) float
+        The frames (minus the neutral) as rows; a row with a NaN gives a NaN row.
+    upper : float, (n_keys,) float or None
+        Upper bound ``u ≥ 0`` of the weights (``inf`` entries are unbounded); None for none.
+    convex : bool
+        Also require ``Σ_i w_i ≤ 1`` (the blend stays inside the keys' simplex).
+
+    Returns
+    -------
+    (n_frames, n_keys) float
+        The weights, within the bounds exactly.
+
+    Notes
+    -----
+    A rank-deficient ``A`` (duplicate or zero keys, ``m < n_keys``) has no unique solution;
+    a ridge of ``1e-10 · λ_max(AᵀA)`` is then added to ``AᵀA`` so that the smallest-norm blend
+    among the (numerically) equally good ones is returned.
+
+    References
+    ----------
+    Lawson & Hanson (1974), ch. 23; Júdice & Pires (1994); Kim & Park (2011).
+
+    Examples
+    --------
+    >>> A = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    >>> solve_nnls(A, np.array([[2.0, -1.0, 2.0], [1.0, 1.0, 2.0]]))
+    array([[2., 0.],
+           [1., 1.]])
+    """
+    A, B = _check_system(A, B)
+    return nnls_gram(A.T @ A, B @ A, _check_upper(upper, A.shape[1]), bool(convex))
+
+
+def solve_weights(
+    track: Track,
+    keys: KeyShapes,
+    *,
+    upper: float | np.ndarray | None = None,
+    smoothness: float = 0.0,
+    convex: bool = False,
+) -> Weights:
+    """Blend weights of every frame of an aligned take, region by region.
+
+    Parameters
+    ----------
+    track : Track
+        Aligned landmarks ``(n_frames, n_landmarks, n_dims)`` in the key set's canonical
+        coordinates (see :func:`keyshape.align.align`); NaN frames have no face.
+    keys : KeyShapes
+        Neutral, key deltas and regions, with the same landmarks as ``track``.
+    upper : float, (n_keys,) float or None
+        Upper bound of each weight (in ``keys.names`` order); None for no bound.
+    smoothness : float
+        Weight ``λ ≥ 0`` of the temporal second-difference penalty. It is scale free: per
+        region ``μ = λ · trace(AᵀA) / K``, i.e. relative to the mean squared key delta, in
+        ``Σ_t ‖A w_t − b_t‖² + μ Σ_t ‖w_{t+1} − 2 w_t + w_{t−1}‖²``, solved over the whole
+        sequence (no lag). 0 solves every frame on its own (the paper's NNLS).
+    convex : bool
+        Also require ``Σ_i w_i ≤ 1`` in each region and frame.
+
+    Returns
+    -------
+    Weights
+        ``values (n_frames, n_keys)`` in ``keys.names`` order, ``fps = track.fps``. With
+        ``smoothness == 0`` frames without a face get NaN weights; with ``smoothness > 0``
+        they are bridged by the smoothness term.
+
+    Examples
+    --------
+    >>> neutral = np.zeros((2, 2))
+    >>> keys = KeyShapes(neutral, [[[1, 0], [0, 0]], [[0, 0], [0, 1]]], ("a", "b"), [0, 0],
+    ...                  ("whole", "whole"), {"whole": [0, 1]})
+    >>> track = Track([[[0.5, 0.0], [0.0, 2.0]], [[np.nan, 0], [0, 0]]], fps=30)
+    >>> solve_weights(track, keys).values
+    array([[0.5, 2. ],
+           [nan, nan]])
+    """
+    track, keys = _check_take(track, keys)
+    upper = _check_upper(upper, keys.n_keys)
+    smoothness = _check_smoothness(smoothness)
+    values = np.zeros((track.n_frames, keys.n_keys))
+    for region, landmarks in keys.regions.items():
+        ks = keys.keys_of(region)
+        if len(ks):
+            A, B = _region_system(track, keys, landmarks, ks)
+            values[:, ks] = _solve_region(A, B, upper[ks], smoothness, bool(convex))
+    if smoothness == 0.0:
+        values[~track.valid] = np.nan
+    return Weights(values, keys.names, track.fps)
+
+
+def _region_system(track, keys, landmarks, ks):
+    """``A (m, K)`` and ``B (n_frames, m)`` of one region (delta form, flattened)."""
+    # k: key, p: region landmark, d: dimension
+    A = keys.deltas[np.ix_(ks, landmarks)].reshape(len(ks), -1).T
+    B = (track.points[:, landmarks] - keys.neutral[landmarks]).reshape(track.n_frames, -1)
+    return A, B
+
+
+def _solve_region(A, B, upper, smoothness, convex):
+    if smoothness == 0.0:
+        return nnls_gram(A.T @ A, B @ A, upper, convex)
+    raise NotImplementedError("temporal smoothness is not available yet")
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _check_system(A, B):
+    A = np.asarray(A, dtype=float)
+    B = np.asarray(B, dtype=float)
+    if A.ndim != 2:
+        raise InputError(f"A must have shape (m, n_keys); got {A.shape}")
+    if B.ndim != 2 or B.shape[1] != A.shape[0]:
+        raise InputError(f"B must have shape (n_frames, {A.shape[0]}); got {B.shape}")
+    if not np.isfinite(A).all():
+        raise InputError("A must be finite; it has NaN or infinite entries")
+    return A, B
+
+
+def _check_upper(upper, n_keys):
+    """(n_keys,) float upper bounds (``inf`` = none) from None, a scalar or a vector."""
+    if upper is None:
+        return np.full(n_keys, np.inf)
+    u = np.asarray(upper, dtype=float)
+    if u.ndim == 0:
+        u = np.full(n_keys, float(u))
+    if u.shape != (n_keys,) or np.isnan(u).any() or (u < 0).any():
+        raise InputError(f"upper must be None, a number >= 0 or {n_keys} numbers >= 0; got {upper!r}")
+    return u
+
+
+def _check_smoothness(smoothness):
+    value = float(smoothness)
+    if not np.isfinite(value) or value < 0:
+        raise InputError(f"smoothness must be a finite number >= 0; got {smoothness!r}")
+    return value
+
+
+def _check_take(track, keys):
+    if not isinstance(track, Track) or not isinstance(keys, KeyShapes):
+        raise InputError(
+            f"solve_weights needs a Track and a KeyShapes; got {type(track).__name__} and "
+            f"{type(keys).__name__}"
+        )
+    if track.points.shape[1:] != keys.neutral.shape:
+        raise InputError(
+            f"the track has landmarks of shape {track.points.shape[1:]} but the key shapes "
+            f"{keys.neutral.shape}; align the track onto the key set first"
+        )
+    return track, keys
