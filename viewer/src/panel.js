@@ -1,5 +1,6 @@
 // The weights panel: one bar per morph target, grouped by region (the name before "_").
-// Clicking a name whose key shape came from this take jumps to that frame.
+// Bars span 0 to 1 (a weight of 1 is the sculpted shape); larger weights fill the bar in
+// another colour. Clicking a name whose key shape came from this take jumps to that frame.
 
 export class WeightsPanel {
   constructor(list, names, keyFrames, onPick) {
@@ -46,6 +47,7 @@ export class WeightsPanel {
     values.forEach((v, i) => {
       const row = this.rows[i];
       row.fill.style.width = `${(100 * Math.min(Math.max(v, 0), 1)).toFixed(1)}%`;
+      row.fill.classList.toggle('over', v > 1); // past the sculpted shape: extrapolating
       row.value.textContent = v.toFixed(2);
     });
   }

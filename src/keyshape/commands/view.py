@@ -8,11 +8,13 @@ from pathlib import Path
 from ..exceptions import InputError
 
 VERB = "view"
-HELP = "open a take in the browser: video and animated character side by side"
-DESCRIPTION = ("Serve a local page (on 127.0.0.1 only) for an output folder of `keyshape run` or "
-               "`keyshape demo`: the source video and the animated .glb play in sync, with "
-               "play/pause, frame-accurate scrubbing and the weight of every morph target. "
-               "Everything the page needs ships with keyshape: no network is used. Ctrl-C stops.")
+HELP = "watch the video and the animated character in sync, in a browser"
+DESCRIPTION = """\
+Serve a local page (on 127.0.0.1 only) for an output folder of `keyshape run` or
+`keyshape demo`: the source video and the animated .glb play side by side, in sync,
+with play/pause, frame-accurate scrubbing (arrow keys step one frame) and the weight
+of every morph target. Everything the page needs ships with keyshape: no network is
+used. Ctrl-C stops the server."""
 DEFAULT_PORT = 8765
 
 
@@ -47,7 +49,7 @@ def run(args) -> None:
             video = take.video.name if take.video else "no video found (animation only)"
             print(f"{take.folder.name}: {take.n_frames} frames at {take.fps:g} fps, {video}")
             print(f"viewer at {server.url}  (Ctrl-C to stop)", flush=True)
-        if not args.no_browser:
+        if not args.no_browser and _has_display():
             import webbrowser
 
             webbrowser.open(server.url)
@@ -56,6 +58,16 @@ def run(args) -> None:
         except KeyboardInterrupt:
             if not args.quiet:
                 print("viewer stopped")
+
+
+def _has_display() -> bool:
+    """Whether a graphical browser can open: without a display, Python's ``webbrowser`` would
+    run a text browser (lynx, w3m) in this terminal, on top of the server's messages."""
+    import os
+    import sys
+
+    return (sys.platform in ("darwin", "win32") or "BROWSER" in os.environ
+            or any(os.environ.get(name) for name in ("DISPLAY", "WAYLAND_DISPLAY")))
 
 
 def _bind(make_server, folder: Path, port: int | None):

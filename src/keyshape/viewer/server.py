@@ -61,6 +61,8 @@ class Take:
         The take's files that exist, by file name (``animation.glb``, ``weights.csv``, ...).
     key_frames : dict of str to int
         Source frame of each key shape of this take, by key name (from ``keys.json``).
+    animation : str
+        File name of the animated ``.glb`` among ``files``.
     """
 
     folder: Path
