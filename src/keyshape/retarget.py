@@ -4,11 +4,23 @@ The paper drives each sculpted target with the weight of the key shape it was sc
 for ("a smile for a smile"). A :class:`Mapping` generalises that to a non-negative
 matrix ``M (n_targets, n_keys)``: target weights are ``w_target = M · w_key`` per frame,
 so one key may drive several targets, each with its own gain.
+
+A mapping file (``--map MAP.json``) is JSON: ``{key: {target: gain, ...}, ...}``, e.g.
+``{"lower_03": {"jawOpen": 0.8, "mouthFunnel": 0.3}}``; the same object may be wrapped as
+``{"format": "keyshape-map", "version": 1, "gains": {...}}`` (what :meth:`Mapping.save`
+writes), or given as a matrix: ``{"keys": [...], "targets": [...], "matrix": [[...], ...]}``
+with one row per target.
+
+Retargeting carries weights only: it assumes nothing about the rig's scale, orientation or
+topology. The targets themselves say how far each vertex moves at weight 1; a key's gain scales
+that. Weights are not clipped (a gain above 1, or several keys on one target, may exceed 1).
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -107,7 +119,7 @@ class Mapping:
         return cls(matrix, keys, targets)
 
     @classmethod
-    def from_dict(cls, gains: dict, *, targets=None) -> Mapping:
+    def from_dict(cls, gains: dict, *, targets=None, sources=None) -> Mapping:
         """A mapping from ``{key: {target: gain, ...}, ...}``.
 
         Parameters
@@ -117,6 +129,9 @@ class Mapping:
         targets : sequence of str or Rig, optional, keyword-only
             The rows, in this order (e.g. the rig's names, so that targets no key drives
             stay at 0). Default: targets in order of first mention.
+        sources : sequence of str, optional, keyword-only
+            The columns, in this order (keys driving nothing stay as zero columns).
+            Default: the dict's keys.
 
         Returns
         -------
@@ -133,17 +148,85 @@ class Mapping:
         >>> m.targets, m.matrix[:, 0].tolist()
         (('browUp_L', 'browUp_R'), [1.0, 0.5])
         """
-        sources = tuple(str(k) for k in gains)
+        sources = tuple(str(k) for k in gains) if sources is None else _names(sources)
+        unknown_keys = [k for k in gains if str(k) not in sources]
+        if unknown_keys:
+            raise InputError(f"gains name keys {unknown_keys} not among the sources {list(sources)}")
         mentioned = list(dict.fromkeys(str(t) for row in gains.values() for t in row))
         rows = mentioned if targets is None else _names(targets)
         unknown = [t for t in mentioned if t not in rows]
         if unknown:
             raise RigError(f"mapping names targets the rig does not have: {unknown}; rig targets: {list(rows)}")
         matrix = np.zeros((len(rows), len(sources)))
-        for k, row in enumerate(gains.values()):
+        for key, row in gains.items():
+            k = sources.index(str(key))
             for target, gain in row.items():
-                matrix[rows.index(str(target)), k] = _gain(gain, sources[k], target)
+                matrix[rows.index(str(target)), k] = _gain(gain, str(key), target)
         return cls(matrix, sources, rows)
+
+    @classmethod
+    def from_file(cls, path, *, targets=None) -> Mapping:
+        """Read a mapping JSON file (see the module docstring for its forms).
+
+        Parameters
+        ----------
+        path : str or Path
+        targets : sequence of str or Rig, optional, keyword-only
+            The rig's target names: rows follow them, targets no key drives stay at 0,
+            and targets the file names but the rig lacks are an error.
+
+        Returns
+        -------
+        Mapping
+
+        Raises
+        ------
+        InputError
+            Unreadable file, not JSON, wrong structure or a bad gain (the message names
+            the file and the entry).
+        RigError
+            The file names targets the rig does not have (listed).
+
+        Examples
+        --------
+        >>> import tempfile, os
+        >>> path = os.path.join(tempfile.mkdtemp(), "map.json")
+        >>> _ = Mapping.from_dict({"lower_03": {"jawOpen": 0.8, "mouthFunnel": 0.3}}).save(path)
+        >>> Mapping.from_file(path, targets=["mouthFunnel", "jawOpen", "eyeBlinkLeft"]).matrix.ravel().tolist()
+        [0.3, 0.8, 0.0]
+        """
+        path = Path(path)
+        data = _read_json(path)
+        try:
+            if isinstance(data, dict) and "matrix" in data:
+                mapping = cls._from_matrix(data)
+                return mapping if targets is None else cls.from_dict(mapping.to_dict(), targets=targets,
+                                                                    sources=mapping.sources)
+            gains = data.get("gains") if isinstance(data, dict) and data.get("format") == MAP_FORMAT else data
+            _check_gains(gains)
+            return cls.from_dict(gains, targets=targets)
+        except (InputError, RigError) as error:
+            raise type(error)(f"{path}: {error}") from None
+
+    @classmethod
+    def _from_matrix(cls, data: dict) -> Mapping:
+        keys, targets = data.get("keys"), data.get("targets")
+        if not isinstance(keys, list) or not isinstance(targets, list):
+            raise InputError('a matrix mapping needs "keys" and "targets" lists beside "matrix"')
+        try:
+            matrix = np.array(data["matrix"], dtype=float)
+        except (TypeError, ValueError):
+            raise InputError('"matrix" must be a list of rows of numbers (one row per target)') from None
+        return cls(matrix, keys, targets)
+
+    def save(self, path) -> Path:
+        """Write the mapping as JSON (``{"format": "keyshape-map", "version": 1, "gains": ...}``), atomically."""
+        from .io.atomic import atomic_path
+
+        text = json.dumps({"format": MAP_FORMAT, "version": 1, "gains": self.to_dict()}, indent=1)
+        with atomic_path(path) as tmp:
+            tmp.write_text(text + "\n", encoding="utf-8")
+        return Path(path)
 
     def to_dict(self) -> dict:
         """``{key: {target: gain}}`` for the non-zero gains (the inverse of :meth:`from_dict`)."""
@@ -154,6 +237,27 @@ class Mapping:
 
     def __repr__(self) -> str:
         return f"Mapping(n_targets={self.n_targets}, n_keys={self.n_keys})"
+
+
+MAP_FORMAT = "keyshape-map"
+
+
+def _read_json(path: Path):
+    if not path.is_file():
+        raise InputError(f"{path}: mapping file not found")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise InputError(f"{path}: not a readable JSON mapping ({error.__class__.__name__}: {error})") from None
+
+
+def _check_gains(gains) -> None:
+    if not isinstance(gains, dict) or not gains:
+        raise InputError('expected a JSON object {key: {target: gain, ...}, ...} with at least one key; '
+                         f"got {type(gains).__name__}")
+    for key, row in gains.items():
+        if not isinstance(row, dict):
+            raise InputError(f"key {key!r} must map to an object {{target: gain, ...}}; got {row!r}")
 
 
 def _by_name_message(missing: list[str], extra: list[str]) -> str:

@@ -1,15 +1,27 @@
 """Characters: load a blendshape rig, or build the default one from key shapes.
 
-A rig is either a folder of OBJ files sharing one topology (``neutral.obj`` plus one
-``<target>.obj`` per target; the file stem is the target name) or a ``.glb``/``.gltf``
-whose morph targets are named in ``mesh.extras.targetNames``. Either way it becomes a
-:class:`~keyshape.containers.Rig`: neutral vertices plus one delta (target − neutral)
-per target, so that ``V(t) = N + Σ w_i(t) (T_i − N)`` (the paper's Eq. 1).
+A rig is one of
+
+* a folder of OBJ files sharing one topology (``neutral.obj`` plus one ``<target>.obj`` per
+  target; the file stem is the target name; quads and n-gons are fan-triangulated);
+* a ``.glb``/``.gltf`` whose morph targets are named in ``mesh.extras.targetNames``
+  (:func:`keyshape.io.gltf.read_rig`: several meshes and primitives sharing the names,
+  skinned or not);
+* a USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``) with UsdSkel blend shapes
+  (:func:`keyshape.io.usd.read_rig`, needs ``usd-core``).
+
+Either way it becomes a :class:`~keyshape.containers.Rig`: neutral vertices plus one delta
+(target − neutral) per target, so that ``V(t) = N + Σ w_i(t) (T_i − N)`` (the paper's Eq. 1).
+Rigs are in glTF's convention: metres, +Y up, facing +Z. OBJ files carry no unit, so
+``unit`` (metres per file unit) scales them; USD files are converted from their
+``metersPerUnit`` and ``upAxis``; glTF is metres by definition.
 """
 
 from __future__ import annotations
 
+import functools
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -18,24 +30,31 @@ from .containers import KeyShapes, Rig
 from .exceptions import InputError, RigError
 from .io.atomic import atomic_path
 
-__all__ = ["load_rig", "rig_from_keyshapes", "save_obj_folder", "read_obj"]
+__all__ = ["load_rig", "rig_from_keyshapes", "save_obj_folder", "read_obj", "parse_unit", "RIG_SUFFIXES"]
 
 NEUTRAL = "neutral"
+GLTF_SUFFIXES = (".glb", ".gltf")
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+RIG_SUFFIXES = (*GLTF_SUFFIXES, *USD_SUFFIXES, ".obj")
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 # image (x right, y down, z away from camera) -> glTF (x right, y up, z toward viewer)
 _IMAGE_TO_GLTF = np.array([1.0, -1.0, -1.0])
 _SAFE_NAME = re.compile(r"^[^/\\:*?\"<>|\x00-\x1f]+$")
 
 
-def load_rig(path) -> Rig:
-    """Load a character's blendshapes from an OBJ folder or a glTF file.
+def load_rig(path, *, unit: float = 1.0) -> Rig:
+    """Load a character's blendshapes from an OBJ folder, a glTF file or a USD file.
 
     Parameters
     ----------
     path : str or Path
-        A folder holding ``neutral.obj`` and ``<target>.obj`` files with one topology
-        (targets sorted by name), or a ``.glb``/``.gltf`` file with named morph targets
-        (see :func:`keyshape.io.gltf.read_rig`: vertices as stored, node transforms
-        not applied).
+        A folder holding ``neutral.obj`` (or exactly one OBJ whose name contains
+        "neutral") and ``<target>.obj`` files with one topology (targets sorted by name);
+        a single ``.obj`` (a neutral with no targets, e.g. to sculpt on); a ``.glb``/``.gltf``
+        with named morph targets (vertices as stored, node transforms not applied); or a USD
+        file with UsdSkel blend shapes.
+    unit : float, keyword-only
+        Metres per OBJ unit (0.01 for centimetres). glTF and USD files state their units.
 
     Returns
     -------
@@ -44,8 +63,10 @@ def load_rig(path) -> Rig:
     Raises
     ------
     RigError
-        Missing ``neutral.obj``, a target whose vertex count differs from the neutral's,
-        a glTF without (named) morph targets, or an unsupported path.
+        Missing neutral, a target whose vertex count or faces differ from the neutral's,
+        a glTF or USD file without (named) blend shapes, or an unsupported path.
+    InputError
+        ``unit`` given for a format that states its own, or not a positive number.
 
     Examples
     --------
@@ -54,17 +75,57 @@ def load_rig(path) -> Rig:
     >>> folder = save_obj_folder(rig, tempfile.mkdtemp())
     >>> load_rig(folder).names
     ('smile',)
+    >>> float(load_rig(folder, unit=0.01).deltas.max())
+    0.01
     """
     path = Path(path)
-    if path.is_dir():
-        return _load_obj_folder(path)
-    if path.suffix.lower() in (".glb", ".gltf"):
+    unit = _check_unit(unit)
+    suffix = path.suffix.lower()
+    if path.is_dir() or suffix == ".obj":
+        rig = _load_obj_folder(path) if path.is_dir() else _load_obj_file(path)
+        return _scaled(rig, unit)
+    if unit != 1.0 and suffix in GLTF_SUFFIXES + USD_SUFFIXES:
+        raise InputError(f"{str(path)!r}: unit applies to OBJ files only; glTF is in metres and USD "
+                         "states its metersPerUnit")
+    if suffix in GLTF_SUFFIXES:
         from .io.gltf import read_rig
 
         return read_rig(path)
+    if suffix in USD_SUFFIXES:
+        from .io.usd import read_rig
+
+        return read_rig(path)
+    expected = "an OBJ folder, an .obj, a .glb/.gltf or a USD (.usd/.usda/.usdc/.usdz) file"
     if not path.exists():
-        raise RigError(f"no rig at {str(path)!r}: expected an OBJ folder or a .glb/.gltf file")
-    raise RigError(f"cannot load a rig from {str(path)!r}: expected an OBJ folder or a .glb/.gltf file")
+        raise RigError(f"no rig at {str(path)!r}: expected {expected}")
+    raise RigError(f"cannot load a rig from {str(path)!r}: expected {expected}")
+
+
+def _check_unit(unit) -> float:
+    try:
+        unit = float(unit)
+    except (TypeError, ValueError):
+        raise InputError(f"unit must be metres per file unit (a number); got {unit!r}") from None
+    if not np.isfinite(unit) or unit <= 0:
+        raise InputError(f"unit must be a positive number of metres per file unit; got {unit!r}")
+    return unit
+
+
+def parse_unit(text: str) -> float:
+    """Metres per unit from ``m``, ``cm``, ``mm``, ``in``, ``ft`` or a number (e.g. ``0.01``)."""
+    text = str(text).strip().lower()
+    if text in UNITS:
+        return UNITS[text]
+    try:
+        return _check_unit(float(text))
+    except (ValueError, InputError):
+        raise InputError(f"unit must be one of {', '.join(UNITS)} or metres per unit; got {text!r}") from None
+
+
+def _scaled(rig: Rig, unit: float) -> Rig:
+    if unit == 1.0:
+        return rig
+    return Rig(rig.vertices * unit, rig.faces, rig.deltas * unit, rig.names)
 
 
 # --------------------------------------------------------------------------- OBJ
@@ -85,16 +146,78 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
     vertices : (n_vertices, 3) float
     faces : (n_faces, 3) int, 0-based triangles (a polygon of n corners gives n − 2)
     """
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.__class__.__name__})") from None
+    return _read_obj_fast(text) or _read_obj_checked(text.splitlines(), path)
+
+
+_VERTEX = re.compile(r"^v[ \t]+([^\n]*)", re.MULTILINE)
+_FACE = re.compile(r"^f[ \t]+([^\n]*)", re.MULTILINE)
+
+
+def _read_obj_fast(text: str):
+    """The common case (no relative indices, no bad records), vectorised; None otherwise."""
+    vertices = _fast_vertices(_VERTEX.findall(text))
+    faces = _fast_faces("\n".join(_FACE.findall(text)))
+    if vertices is None or faces is None or (faces.size and faces.max() >= len(vertices)):
+        return None
+    return vertices, faces.copy()
+
+
+def _fast_vertices(lines: list[str]) -> np.ndarray | None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # older numpy warns on unparsable text
+        try:
+            flat = np.fromstring("\n".join(lines), sep=" ") if lines else np.zeros(0)
+        except ValueError:  # newer numpy raises instead
+            flat = np.zeros(0)
+    if flat.size == 3 * len(lines):
+        return flat.reshape(-1, 3)
+    try:  # extra columns (vertex colours): keep x, y, z
+        return np.array([line.split()[:3] for line in lines], dtype=float).reshape(-1, 3)
+    except ValueError:
+        return None
+
+
+@functools.lru_cache(maxsize=4)
+def _fast_faces(text: str) -> np.ndarray | None:
+    """Fan-triangulated faces of the ``f`` records (cached: a rig's files share them)."""
+    corners = re.sub(r"/\S*", "", text)
+    try:
+        index = np.array(corners.split(), dtype=np.int64) - 1
+    except ValueError:
+        return None
+    counts = np.array([len(line.split()) for line in corners.split("\n")] if text else [], dtype=np.int64)
+    if (counts < 3).any() or (index < 0).any():
+        return None
+    faces = _fan(index, counts)
+    faces.flags.writeable = False
+    return faces
+
+
+def _fan(index: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(n_faces, 3): polygon p of ``counts[p]`` corners -> (c0, c1, c2), (c0, c2, c3), ..."""
+    starts = np.cumsum(counts) - counts
+    n_triangles = counts - 2
+    first = np.repeat(starts, n_triangles)
+    # k = 1 .. n - 2 within each polygon
+    k = np.arange(n_triangles.sum()) - np.repeat(np.cumsum(n_triangles) - n_triangles, n_triangles) + 1
+    return np.stack([index[first], index[first + k], index[first + k + 1]], axis=1)
+
+
+def _read_obj_checked(lines: list[str], path) -> tuple[np.ndarray, np.ndarray]:
+    """Line by line, resolving relative indices and quoting the first bad record."""
     vertices, polygons = [], []
-    with open(path, encoding="utf-8", errors="replace") as lines:
-        for number, line in enumerate(lines, 1):
-            fields = line.split()
-            if not fields:
-                continue
-            if fields[0] == "v":
-                vertices.append(_parse_vertex(fields, path, number))
-            elif fields[0] == "f":
-                polygons.append(_parse_face(fields, len(vertices), path, number))
+    for number, line in enumerate(lines, 1):
+        fields = line.split()
+        if not fields:
+            continue
+        if fields[0] == "v":
+            vertices.append(_parse_vertex(fields, path, number))
+        elif fields[0] == "f":
+            polygons.append(_parse_face(fields, len(vertices), path, number))
     vertices = np.array(vertices, dtype=float).reshape(-1, 3)
     faces = _fan_triangulate(polygons)
     if faces.size and faces.max() >= len(vertices):
@@ -131,28 +254,44 @@ def _fan_triangulate(polygons: list[list[int]]) -> np.ndarray:
     return np.array(triangles, dtype=np.int64).reshape(-1, 3)
 
 
+def _neutral_path(folder: Path) -> Path:
+    exact = folder / f"{NEUTRAL}.obj"
+    if exact.is_file():
+        return exact
+    named = sorted(p for p in folder.glob("*.obj") if NEUTRAL in p.stem.lower())
+    if len(named) == 1:
+        return named[0]
+    found = f"; candidates: {[p.name for p in named]}" if named else ""
+    raise RigError(f"rig folder {str(folder)!r} has no {NEUTRAL}.obj (the neutral shape){found}")
+
+
 def _load_obj_folder(folder: Path) -> Rig:
-    neutral_path = folder / f"{NEUTRAL}.obj"
-    if not neutral_path.is_file():
-        raise RigError(f"rig folder {str(folder)!r} has no {NEUTRAL}.obj (the neutral shape)")
+    neutral_path = _neutral_path(folder)
     vertices, faces = read_obj(neutral_path)
-    target_paths = sorted(p for p in folder.glob("*.obj") if p.stem != NEUTRAL)
-    deltas = [_target_delta(p, vertices, faces) for p in target_paths]
+    target_paths = sorted(p for p in folder.glob("*.obj") if p != neutral_path)
+    deltas = [_target_delta(p, neutral_path.name, vertices, faces) for p in target_paths]
     return Rig(vertices, faces, np.array(deltas).reshape(-1, *vertices.shape),
                tuple(p.stem for p in target_paths))
 
 
-def _target_delta(path: Path, neutral: np.ndarray, neutral_faces: np.ndarray) -> np.ndarray:
+def _load_obj_file(path: Path) -> Rig:
+    if not path.is_file():
+        raise RigError(f"no rig at {str(path)!r}: no such OBJ file")
+    vertices, faces = read_obj(path)
+    return Rig(vertices, faces, np.zeros((0, *vertices.shape)), ())
+
+
+def _target_delta(path: Path, neutral_name: str, neutral: np.ndarray, neutral_faces: np.ndarray) -> np.ndarray:
     """(n_vertices, 3) float: target − neutral, after checking both share one topology."""
     vertices, faces = read_obj(path)
     if len(vertices) != len(neutral):
         raise RigError(
-            f"{path.name} has {len(vertices)} vertices but {NEUTRAL}.obj has {len(neutral)}: "
+            f"{path.name} has {len(vertices)} vertices but {neutral_name} has {len(neutral)}: "
             "every target must share the neutral's topology"
         )
     if faces.size and not np.array_equal(faces, neutral_faces):
         raise RigError(
-            f"{path.name} has the same {len(vertices)} vertices as {NEUTRAL}.obj but other faces "
+            f"{path.name} has the same {len(vertices)} vertices as {neutral_name} but other faces "
             f"({len(faces)} triangles vs {len(neutral_faces)}): every target must share the neutral's topology"
         )
     return vertices - neutral

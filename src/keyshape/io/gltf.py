@@ -1,26 +1,32 @@
 """glTF 2.0: morph-target rigs in, morph-weight (and head-rotation) animation out.
 
-Writing produces one binary ``.glb`` holding a single mesh whose morph targets are the
-rig's deltas, named in ``mesh.extras.targetNames`` (the de-facto convention read by
-three.js, Babylon.js and Blender), one node ``"face"`` holding it, and one animation:
-a ``weights`` channel sampled at ``frame / fps`` with LINEAR interpolation, plus an
-optional ``rotation`` channel for the head.
+Three writers, all producing one self-contained binary ``.glb``, atomically:
 
-Coordinates follow glTF: metres, +Y up, +Z toward the viewer. Image-space rotations
+* :func:`write_glb` builds a new file from a :class:`~keyshape.containers.Rig`: one mesh
+  whose morph targets are the rig's deltas, named in ``mesh.extras.targetNames`` (the
+  convention read by three.js, Babylon.js and Blender), one node ``"face"`` holding it, and
+  one animation: a ``weights`` channel sampled at ``frame / fps`` with LINEAR interpolation,
+  plus an optional ``rotation`` channel for the head.
+* :func:`animate_gltf` keeps an artist's **original** file (skinning, materials, textures,
+  other meshes and animations) and adds one animation ``"keyshape"``: a ``weights`` channel
+  on every node whose mesh carries the targets, and the head rotation on the character's
+  head node (a joint or node named like ``head`` above the face meshes).
+* :func:`write_gltf_targets` puts new morph targets (the sculpt kit's, one per key shape)
+  on chosen meshes of an original file.
+
+Coordinates follow glTF: metres, +Y up, the character facing +Z. Image-space rotations
 (x right, y down, z away from the camera) are converted with ``C = diag(1, -1, -1)``:
 ``R_gltf = C R C``.
 
 References
 ----------
-The Khronos Group, *glTF 2.0 Specification*, sections 3.7.2.2 (morph targets) and
-3.11 (animations).
+The Khronos Group, *glTF 2.0 Specification*, sections 3.7.2.2 (morph targets), 3.6.2.3
+(sparse accessors) and 3.11 (animations).
 """
 
 from __future__ import annotations
 
-import base64
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import pygltflib
@@ -28,41 +34,19 @@ from scipy.spatial.transform import Rotation
 
 from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, RigError
+from . import _gltf_edit as edit
+from ._gltf_read import (ANIMATION_NAMES, GlbAnimation, Part, load_document, morph_meshes,
+                         read_glb_animation, read_parts, read_rig, target_names)
 from .atomic import atomic_path
 
-__all__ = ["write_glb", "read_glb_animation", "read_rig", "GlbAnimation"]
+__all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
+           "read_meshes", "GlbAnimation", "Part"]
 
-_FLOAT = pygltflib.FLOAT
-_COMPONENT_DTYPES = {
-    pygltflib.BYTE: np.int8,
-    pygltflib.UNSIGNED_BYTE: np.uint8,
-    pygltflib.SHORT: np.int16,
-    pygltflib.UNSIGNED_SHORT: np.uint16,
-    pygltflib.UNSIGNED_INT: np.uint32,
-    pygltflib.FLOAT: np.float32,
-}
-_N_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+ANIMATION = ANIMATION_NAMES[0]
 _IMAGE_TO_GLTF = np.diag([1.0, -1.0, -1.0])  # C: image (x right, y down, z away) <-> glTF
 
 
-class GlbAnimation(NamedTuple):
-    """The animation stored in a ``.glb`` written by :func:`write_glb`.
-
-    Attributes
-    ----------
-    names : tuple of n_targets str
-    times : (n_frames,) float, seconds
-    weights : (n_frames, n_targets) float
-    rotations : (n_frames, 4) float unit quaternions (x, y, z, w) in glTF axes, or None
-    """
-
-    names: tuple[str, ...]
-    times: np.ndarray
-    weights: np.ndarray
-    rotations: np.ndarray | None
-
-
-# --------------------------------------------------------------------------- writing
+# --------------------------------------------------------------------------- a new file
 
 
 def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -> Path:
@@ -74,10 +58,12 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
         Output file; must end in ``.glb``. Written to a temporary file in the same
         folder and moved into place, so a failure leaves no partial file.
     rig : Rig
-        Neutral mesh and target deltas (written as they are: glTF metres, +Y up).
+        Neutral mesh and target deltas (written as they are: glTF metres, +Y up). Targets
+        that move few vertices are stored as sparse accessors.
     weights : Weights
         ``values (n_frames, n_targets)`` named exactly ``rig.names``, in that order
         (use :func:`keyshape.retarget.retarget` first). NaN frames are written as 0.
+        With no frames, no animation is written (a plain rig, e.g. for sculpting).
     poses : Poses, optional
         Head pose per frame in image convention (2D or 3D rotations, ``n_frames`` as
         ``weights``); written as a ``rotation`` channel on the node. NaN frames hold the
@@ -105,40 +91,59 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
     array([0., 1.])
     """
     path = Path(path)
-    _check_write_args(path, rig, weights, poses)
-    rotations = None if poses is None else _pose_quaternions(poses)
-    document = _build_document(rig, weights, rotations)
-    data = b"".join(document.save_to_bytes())
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return path
-
-
-def _check_write_args(path: Path, rig: Rig, weights: Weights, poses: Poses | None) -> None:
-    if path.suffix.lower() != ".glb":
-        raise InputError(f"write_glb writes binary glTF: the path must end in .glb; got {str(path)!r}")
-    if tuple(weights.names) != tuple(rig.names):
-        missing = [n for n in rig.names if n not in weights.names]
-        extra = [n for n in weights.names if n not in rig.names]
-        raise RigError(
-            f"weights must be named by the rig's targets, in rig order {list(rig.names)}; "
-            f"got {list(weights.names)} (missing {missing}, extra {extra}); retarget them first"
-        )
+    _check_suffix(path)
+    _check_names(rig.names, weights)
     if rig.n_targets == 0:
         raise RigError("the rig has no morph targets to animate")
+    _check_poses(poses, weights)
+    rotations = None if poses is None else _pose_quaternions(poses)
+    return _save(path, _build_document(rig, weights, rotations))
+
+
+def _check_suffix(path: Path) -> None:
+    if path.suffix.lower() != ".glb":
+        raise InputError(f"glTF output is binary glTF: the path must end in .glb; got {str(path)!r}")
+
+
+def _check_names(names, weights: Weights) -> None:
+    if tuple(weights.names) != tuple(names):
+        missing = [n for n in names if n not in weights.names]
+        extra = [n for n in weights.names if n not in names]
+        raise RigError(
+            f"weights must be named by the rig's targets, in rig order {list(names)}; "
+            f"got {list(weights.names)} (missing {missing}, extra {extra}); retarget them first"
+        )
+
+
+def _check_poses(poses: Poses | None, weights: Weights) -> None:
     if poses is not None and poses.n_frames != weights.n_frames:
         raise InputError(
             f"poses must have one frame per weights frame ({weights.n_frames}); got {poses.n_frames}"
         )
 
 
+def _save(path: Path, document: pygltflib.GLTF2) -> Path:
+    data = b"".join(document.save_to_bytes())
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def head_rotations(poses: Poses) -> np.ndarray:
+    """(n_frames, 3, 3) float: head rotations in glTF axes from image-space poses.
+
+    2D rotations turn about the image z axis; NaN frames hold the previous valid rotation
+    (leading ones the first valid; none at all: identity).
+    """
+    rotations = _fill_invalid(_as_3d(np.asarray(poses.rotations, dtype=float)))
+    return _IMAGE_TO_GLTF @ rotations @ _IMAGE_TO_GLTF  # R_gltf = C R C (C is its own inverse)
+
+
 def _pose_quaternions(poses: Poses) -> np.ndarray:
     """Unit quaternions ``(n_frames, 4)`` (x, y, z, w) in glTF axes from image-space rotations."""
-    rot = _as_3d(np.asarray(poses.rotations, dtype=float))
-    rot = _fill_invalid(rot)
-    rot = _IMAGE_TO_GLTF @ rot @ _IMAGE_TO_GLTF  # R_gltf = C R C (C is its own inverse)
+    rot = head_rotations(poses)
     quats = Rotation.from_matrix(rot).as_quat() if len(rot) else np.zeros((0, 4))
-    return _continuous_hemisphere(quats)
+    return edit.continuous_hemisphere(quats)
 
 
 def _as_3d(rotations: np.ndarray) -> np.ndarray:
@@ -160,59 +165,6 @@ def _fill_invalid(rotations: np.ndarray) -> np.ndarray:
     return rotations[source]
 
 
-def _continuous_hemisphere(quats: np.ndarray) -> np.ndarray:
-    """Flip signs so consecutive quaternions are in one hemisphere (shortest LINEAR slerp)."""
-    out = quats.copy()
-    for i in range(1, len(out)):
-        if np.dot(out[i], out[i - 1]) < 0:
-            out[i] = -out[i]
-    return out
-
-
-class _Blob:
-    """Accumulates buffer views and accessors in one binary buffer."""
-
-    def __init__(self, document: pygltflib.GLTF2):
-        self.document = document
-        self.chunks: list[bytes] = []
-        self.length = 0
-
-    def add(self, array: np.ndarray, accessor_type: str, *, target=None, bounds=False) -> int:
-        """Append ``array`` as a tightly packed view and return its accessor index."""
-        data = np.ascontiguousarray(array).tobytes()
-        self.document.bufferViews.append(
-            pygltflib.BufferView(buffer=0, byteOffset=self.length, byteLength=len(data), target=target)
-        )
-        pad = (-len(data)) % 4
-        self.chunks.append(data + b"\0" * pad)
-        self.length += len(data) + pad
-        accessor = pygltflib.Accessor(
-            bufferView=len(self.document.bufferViews) - 1,
-            componentType=_component_type(array.dtype),
-            count=int(array.shape[0]),
-            type=accessor_type,
-        )
-        if bounds:
-            flat = array.reshape(array.shape[0], -1)
-            accessor.min = [_json_number(v) for v in flat.min(axis=0)]
-            accessor.max = [_json_number(v) for v in flat.max(axis=0)]
-        self.document.accessors.append(accessor)
-        return len(self.document.accessors) - 1
-
-    def finish(self) -> None:
-        blob = b"".join(self.chunks)
-        self.document.buffers.append(pygltflib.Buffer(byteLength=len(blob)))
-        self.document.set_binary_blob(blob)
-
-
-def _component_type(dtype) -> int:
-    return {np.dtype(v): k for k, v in _COMPONENT_DTYPES.items()}[np.dtype(dtype)]
-
-
-def _json_number(value):
-    return int(value) if np.issubdtype(type(value), np.integer) else float(value)
-
-
 def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) -> pygltflib.GLTF2:
     document = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="keyshape"),
@@ -220,7 +172,7 @@ def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) ->
         scenes=[pygltflib.Scene(nodes=[0])],
         nodes=[pygltflib.Node(name="face", mesh=0)],
     )
-    blob = _Blob(document)
+    blob = edit.Blob(document)
     document.meshes.append(_mesh(blob, rig))
     document.materials.append(
         pygltflib.Material(
@@ -232,20 +184,21 @@ def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) ->
         )
     )
     if weights.n_frames:
-        document.animations.append(_animation(blob, weights, rotations))
+        times = _times(blob, weights)
+        output = _weights_output(blob, weights.values)
+        document.animations.append(_animation(times, [(0, output)], "performance"))
+        if rotations is not None:
+            _add_rotation(document.animations[0], blob, times, 0, rotations)
     blob.finish()
     return document
 
 
-def _mesh(blob: _Blob, rig: Rig) -> pygltflib.Mesh:
+def _mesh(blob: edit.Blob, rig: Rig) -> pygltflib.Mesh:
     array_buffer, element_buffer = pygltflib.ARRAY_BUFFER, pygltflib.ELEMENT_ARRAY_BUFFER
     position = blob.add(rig.vertices.astype(np.float32), "VEC3", target=array_buffer, bounds=True)
     index_dtype = np.uint16 if rig.n_vertices < 65535 else np.uint32
     indices = blob.add(rig.faces.reshape(-1).astype(index_dtype), "SCALAR", target=element_buffer)
-    targets = [
-        {"POSITION": blob.add(delta.astype(np.float32), "VEC3", target=array_buffer, bounds=True)}
-        for delta in rig.deltas
-    ]
+    targets = [{"POSITION": blob.add_target(delta)} for delta in rig.deltas]
     primitive = pygltflib.Primitive(
         attributes=pygltflib.Attributes(POSITION=position), indices=indices, material=0, targets=targets
     )
@@ -257,234 +210,223 @@ def _mesh(blob: _Blob, rig: Rig) -> pygltflib.Mesh:
     )
 
 
-def _animation(blob: _Blob, weights: Weights, rotations: np.ndarray | None) -> pygltflib.Animation:
-    times = blob.add(weights.times.astype(np.float32), "SCALAR", bounds=True)
-    values = np.nan_to_num(weights.values, nan=0.0).astype(np.float32)
+def _times(blob: edit.Blob, weights: Weights) -> int:
+    return blob.add(weights.times.astype(np.float32), "SCALAR", bounds=True)
+
+
+def _weights_output(blob: edit.Blob, values: np.ndarray) -> int:
     # glTF morph-weight output: n_frames · n_targets scalars, frame-major.
-    output = blob.add(values.reshape(-1), "SCALAR")
-    samplers = [pygltflib.AnimationSampler(input=times, output=output, interpolation="LINEAR")]
-    channels = [pygltflib.AnimationChannel(sampler=0, target=_target("weights"))]
-    if rotations is not None:
-        quats = blob.add(rotations.astype(np.float32), "VEC4")
-        samplers.append(pygltflib.AnimationSampler(input=times, output=quats, interpolation="LINEAR"))
-        channels.append(pygltflib.AnimationChannel(sampler=1, target=_target("rotation")))
-    return pygltflib.Animation(name="performance", samplers=samplers, channels=channels)
+    return blob.add(np.nan_to_num(values, nan=0.0).astype(np.float32).reshape(-1), "SCALAR")
 
 
-def _target(path: str) -> pygltflib.AnimationChannelTarget:
-    return pygltflib.AnimationChannelTarget(node=0, path=path)
+def _animation(times: int, weight_outputs, name: str) -> pygltflib.Animation:
+    """An animation with one LINEAR ``weights`` channel per ``(node, output accessor)``."""
+    samplers, channels = [], []
+    for node, output in weight_outputs:
+        samplers.append(pygltflib.AnimationSampler(input=times, output=output, interpolation="LINEAR"))
+        channels.append(pygltflib.AnimationChannel(
+            sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path="weights")))
+    return pygltflib.Animation(name=name, samplers=samplers, channels=channels)
 
 
-# --------------------------------------------------------------------------- reading
+def _add_rotation(animation: pygltflib.Animation, blob: edit.Blob, times: int, node: int,
+                  quats: np.ndarray) -> None:
+    output = blob.add(quats.astype(np.float32), "VEC4")
+    animation.samplers.append(pygltflib.AnimationSampler(input=times, output=output, interpolation="LINEAR"))
+    animation.channels.append(pygltflib.AnimationChannel(
+        sampler=len(animation.samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path="rotation")))
 
 
-def _load(path) -> tuple[pygltflib.GLTF2, list[bytes]]:
-    """The glTF document at ``path`` and the bytes of each of its buffers."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"no such glTF file: {str(path)!r}")
-    try:
-        document = pygltflib.GLTF2().load(str(path))
-    except Exception as error:  # pygltflib raises bare exceptions on malformed input
-        raise InputError(f"cannot read {str(path)!r} as glTF: {error}") from error
-    if document is None:
-        raise InputError(f"cannot read {str(path)!r} as glTF")
-    return document, [_buffer_bytes(document, buffer, path) for buffer in document.buffers]
+# --------------------------------------------------------------------------- an artist's file
 
 
-def _buffer_bytes(document: pygltflib.GLTF2, buffer: pygltflib.Buffer, path: Path) -> bytes:
-    if buffer.uri is None:
-        return document.binary_blob() or b""
-    if buffer.uri.startswith("data:"):
-        return base64.b64decode(buffer.uri.split(",", 1)[1])
-    resource = path.parent / buffer.uri
-    if not resource.is_file():
-        raise InputError(f"{str(path)!r} refers to a missing buffer file {str(resource)!r}")
-    return resource.read_bytes()
-
-
-def _read_accessor(document: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarray:
-    """Accessor ``index`` as a ``(count, n_components)`` float array (strides, sparse, normalized)."""
-    accessor = document.accessors[index]
-    dtype = np.dtype(_COMPONENT_DTYPES[accessor.componentType]).newbyteorder("<")
-    width = _N_COMPONENTS[accessor.type]
-    if accessor.bufferView is None:
-        out = np.zeros((accessor.count, width))
-    else:
-        out = _read_view(document, buffers, accessor.bufferView, accessor.byteOffset or 0,
-                         dtype, accessor.count, width)
-    out = _dequantize(out, dtype) if accessor.normalized else out.astype(float)
-    if accessor.sparse is not None:
-        out = _apply_sparse(document, buffers, accessor, out, dtype, width)
-    return out
-
-
-def _read_view(document, buffers, view_index, offset, dtype, count, width) -> np.ndarray:
-    """(count, width) elements of ``dtype`` from a buffer view, honouring ``byteStride``."""
-    view = document.bufferViews[view_index]
-    element = dtype.itemsize * width
-    stride = view.byteStride or element
-    if count == 0:
-        return np.zeros((0, width), dtype)
-    start = (view.byteOffset or 0) + offset
-    raw = np.frombuffer(buffers[view.buffer], np.uint8, (count - 1) * stride + element, start)
-    rows = np.lib.stride_tricks.as_strided(raw, shape=(count, element), strides=(stride, 1))
-    return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
-
-
-def _dequantize(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """glTF normalized integers to floats (spec 3.11, 'Animations', and 3.6.2.3)."""
-    scale = float(np.iinfo(dtype).max)
-    return np.maximum(values.astype(float) / scale, -1.0)
-
-
-def _apply_sparse(document, buffers, accessor, out, dtype, width) -> np.ndarray:
-    sparse = accessor.sparse
-    index_dtype = np.dtype(_COMPONENT_DTYPES[sparse.indices.componentType]).newbyteorder("<")
-    rows = _read_view(document, buffers, sparse.indices.bufferView, sparse.indices.byteOffset or 0,
-                      index_dtype, sparse.count, 1)[:, 0].astype(np.int64)
-    values = _read_view(document, buffers, sparse.values.bufferView, sparse.values.byteOffset or 0,
-                        dtype, sparse.count, width)
-    out = out.copy()
-    out[rows] = _dequantize(values, dtype) if accessor.normalized else values
-    return out
-
-
-def read_glb_animation(path) -> GlbAnimation:
-    """Read back the first morph-weight animation of a glTF file.
+def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
+                 head: str | None = None) -> Path:
+    """Add the performance to an artist's own glTF file, keeping everything else.
 
     Parameters
     ----------
+    source : str or Path
+        The character (``.glb`` or ``.gltf``) whose meshes carry named morph targets.
+    weights : Weights
+        ``values (n_frames, n_channels)`` named by the file's target names (any order, any
+        subset; targets not named keep their default weight). NaN is written as 0.
     path : str or Path
-        A ``.glb`` or ``.gltf`` file, such as one written by :func:`write_glb`.
+        Output ``.glb``: the original scene with every buffer and image packed in, skinned
+        meshes moved to the scene root (the spec ignores their parents' transforms anyway),
+        earlier ``keyshape`` animations replaced, and one animation ``"keyshape"`` added.
+    poses : Poses, optional
+        Head poses (image convention, as :func:`write_glb`), written as the ``rotation`` of
+        the head node: ``Pᵀ D P R`` for a world-frame head rotation ``D``, the head's parent
+        rest rotation ``P`` and its own rest rotation ``R``, so it turns about its pivot.
+    head : str, optional, keyword-only
+        Name of the node to turn. Default: found (see ``_gltf_edit.find_head``).
 
     Returns
     -------
-    GlbAnimation
-        ``(names, times (n_frames,), weights (n_frames, n_targets), rotations (n_frames, 4) or None)``;
-        ``rotations`` are the quaternions (x, y, z, w) of a rotation channel on the same node.
-
-    Raises
-    ------
-    InputError
-        If the file has no animation with a ``weights`` channel.
-    """
-    document, buffers = _load(path)
-    for animation in document.animations:
-        found = _weights_channel(animation)
-        if found is not None:
-            return _read_animation(document, buffers, animation, found)
-    raise InputError(f"{str(path)!r} has no animation with a 'weights' channel")
-
-
-def _weights_channel(animation: pygltflib.Animation):
-    return next((c for c in animation.channels if c.target.path == "weights"), None)
-
-
-def _read_animation(document, buffers, animation, channel) -> GlbAnimation:
-    node = document.nodes[channel.target.node]
-    mesh = document.meshes[node.mesh]
-    names = tuple((mesh.extras or {}).get("targetNames", ()))
-    sampler = animation.samplers[channel.sampler]
-    times = _read_accessor(document, buffers, sampler.input)[:, 0]
-    values = _read_accessor(document, buffers, sampler.output).reshape(len(times), -1)
-    rotation = next(
-        (c for c in animation.channels if c.target.path == "rotation" and c.target.node == channel.target.node),
-        None,
-    )
-    rotations = None
-    if rotation is not None:
-        rotations = _read_accessor(document, buffers, animation.samplers[rotation.sampler].output)
-    return GlbAnimation(names, times, values, rotations)
-
-
-def read_rig(path) -> Rig:
-    """Load the morph-target primitives of a glTF file as one :class:`Rig`.
-
-    Every primitive (of any mesh) that has morph targets is kept and their vertices are
-    concatenated, faces offset. Target names come from each mesh's
-    ``extras.targetNames``; a primitive lacking one of the union of names contributes zero
-    deltas for it. Vertices are taken **as stored**, in mesh-local coordinates: node
-    transforms are not applied. Primitives without morph targets (body, props) are ignored.
-
-    Parameters
-    ----------
-    path : str or Path
-        ``.glb`` or ``.gltf``.
-
-    Returns
-    -------
-    Rig
+    Path
 
     Raises
     ------
     RigError
-        If no primitive has morph targets, or a mesh with targets does not name them.
+        If the file has no named morph targets, ``weights`` names targets it lacks, or
+        ``poses`` is given and no head node can be found (name one with ``head``).
     """
-    document, buffers = _load(path)
-    parts = [
-        _read_primitive(document, buffers, primitive, names)
-        for mesh, names in _morph_meshes(document, path)
-        for primitive in mesh.primitives
-        if primitive.targets
-    ]
-    if not parts:
-        raise RigError(f"{str(path)!r} has no morph targets: it cannot be driven as a blendshape rig")
-    return _concatenate(parts)
+    path, source = Path(path), Path(source)
+    _check_suffix(path)
+    _check_poses(poses, weights)
+    document, buffers = load_document(source)
+    meshes = morph_meshes(document, source)
+    _check_known(document, meshes, weights, source)
+    blob = edit.pack(document, buffers, source)
+    edit.drop_animations(document, ANIMATION_NAMES)
+    edit.root_skinned_meshes(document)
+    if weights.n_frames:
+        document.animations.append(_performance(document, blob, meshes, weights, poses, head, source))
+    blob.finish()
+    return _save(path, document)
 
 
-def _morph_meshes(document, path):
-    """(mesh, target names) for each mesh with morph targets."""
-    found = []
-    for index, mesh in enumerate(document.meshes):
-        counts = {len(p.targets) for p in mesh.primitives if p.targets}
-        if not counts:
-            continue
-        names = list((mesh.extras or {}).get("targetNames") or [])
-        if not names or counts != {len(names)}:
-            raise RigError(
-                f"{str(path)!r}: mesh {index} ({mesh.name or 'unnamed'}) has {sorted(counts)} morph targets "
-                f"but {len(names)} names in mesh.extras.targetNames; targets must be named to match keys"
-            )
-        found.append((mesh, names))
-    return found
+def _check_known(document, meshes, weights: Weights, source) -> None:
+    known = {name for m in meshes for name in target_names(document.meshes[m])}
+    if not known:
+        raise RigError(f"{str(source)!r} has no morph targets: it cannot be driven as a blendshape rig")
+    unknown = [n for n in weights.names if n not in known]
+    if unknown:
+        raise RigError(f"weights name targets {str(source)!r} does not have: {unknown}; "
+                       f"its targets: {sorted(known)}")
 
 
-def _read_primitive(document, buffers, primitive, names):
-    vertices = _read_accessor(document, buffers, primitive.attributes.POSITION)
-    if primitive.indices is None:
-        indices = np.arange(len(vertices))
-    else:
-        indices = _read_accessor(document, buffers, primitive.indices)[:, 0].astype(np.int64)
-    faces = _triangles(indices, primitive.mode)
-    deltas = {
-        name: _read_accessor(document, buffers, target["POSITION"])
-        if target.get("POSITION") is not None else np.zeros_like(vertices)
-        for name, target in zip(names, primitive.targets)
-    }
-    return vertices, faces, deltas
+def _performance(document, blob, meshes, weights, poses, head, source) -> pygltflib.Animation:
+    times = _times(blob, weights)
+    outputs, by_mesh = [], {}
+    nodes = edit.morph_nodes(document, meshes)
+    for node in nodes:
+        mesh = document.nodes[node].mesh
+        if mesh not in by_mesh:
+            by_mesh[mesh] = _weights_output(blob, _mesh_weights(document.meshes[mesh], weights))
+        outputs.append((node, by_mesh[mesh]))
+    animation = _animation(times, outputs, ANIMATION)
+    if poses is not None:
+        index = edit.find_head(document, nodes, name=head)
+        if index is None:
+            raise RigError(f"{str(source)!r}: no head node found for the head rotation (no joint or "
+                           "node named like 'head' above the face meshes); name one, or leave out the poses")
+        edit.as_trs(document.nodes[index])
+        quats = edit.head_local_rotations(document, index, head_rotations(poses))
+        _add_rotation(animation, blob, times, index, quats)
+    return animation
 
 
-def _triangles(indices: np.ndarray, mode) -> np.ndarray:
-    """(n_faces, 3) triangles from a primitive's index list and its mode (4, 5 or 6)."""
-    mode = pygltflib.TRIANGLES if mode is None else mode
-    if mode == pygltflib.TRIANGLES:
-        return indices[: len(indices) // 3 * 3].reshape(-1, 3)
-    if mode == pygltflib.TRIANGLE_STRIP:
-        tris = np.stack([indices[:-2], indices[1:-1], indices[2:]], axis=1)
-        tris[1::2] = tris[1::2][:, [1, 0, 2]]  # keep the winding of odd triangles
-        return tris
-    if mode == pygltflib.TRIANGLE_FAN:
-        return np.stack([np.full(len(indices) - 2, indices[0]), indices[1:-1], indices[2:]], axis=1)
-    raise RigError(f"morph-target primitive has mode {mode} (points or lines); expected triangles")
+def _mesh_weights(mesh: pygltflib.Mesh, weights: Weights) -> np.ndarray:
+    """(n_frames, n_mesh_targets): the mesh's targets in its own order; unnamed ones at rest."""
+    names = target_names(mesh)
+    rest = list(mesh.weights or []) + [0.0] * (len(names) - len(mesh.weights or []))
+    columns = [weights.values[:, weights.names.index(n)] if n in weights.names
+               else np.full(weights.n_frames, rest[k]) for k, n in enumerate(names)]
+    return np.stack(columns, axis=1)
 
 
-def _concatenate(parts) -> Rig:
-    names = list(dict.fromkeys(name for _, _, deltas in parts for name in deltas))
-    offsets = np.cumsum([0] + [len(v) for v, _, _ in parts])
-    vertices = np.concatenate([v for v, _, _ in parts])
-    faces = np.concatenate([f + off for (_, f, _), off in zip(parts, offsets)])
-    deltas = np.stack([
-        np.concatenate([d.get(name, np.zeros_like(v)) for v, _, d in parts]) for name in names
-    ])
-    return Rig(vertices, faces, deltas, tuple(names))
+# --------------------------------------------------------------------------- new targets
+
+
+def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
+    """The chosen meshes of a glTF file as one rig, and where each primitive sits in it.
+
+    Parameters
+    ----------
+    path : str or Path
+    meshes : sequence of int or str, optional, keyword-only
+        Mesh indices or names. Default: the meshes with morph targets, or every mesh when
+        none has any (a plain character to sculpt on).
+
+    Returns
+    -------
+    rig : Rig
+        Neutral vertices (mesh-local, as stored) and the meshes' existing targets, if any.
+    parts : list of Part
+    """
+    document, buffers = load_document(path)
+    chosen = _choose_meshes(document, meshes, path)
+    return read_parts(document, buffers, chosen, path)
+
+
+def _choose_meshes(document, meshes, path) -> list[int]:
+    if meshes is None:
+        return morph_meshes(document, path) or list(range(len(document.meshes)))
+    names = [m.name for m in document.meshes]
+    chosen = []
+    for item in meshes:
+        if isinstance(item, str) and item in names:
+            chosen.append(names.index(item))
+        elif isinstance(item, (int, np.integer)) and 0 <= item < len(names):
+            chosen.append(int(item))
+        else:
+            raise RigError(f"{str(path)!r} has no mesh {item!r}; meshes: {names}")
+    if not chosen:
+        raise RigError(f"{str(path)!r}: no meshes chosen")
+    return list(dict.fromkeys(chosen))
+
+
+def write_gltf_targets(source, path, rig: Rig, *, meshes=None) -> Path:
+    """Replace the morph targets of chosen meshes of ``source`` by the rig's, and write a ``.glb``.
+
+    Parameters
+    ----------
+    source : str or Path
+        The original ``.glb``/``.gltf``; everything else in it is kept.
+    path : str or Path
+        Output ``.glb`` (atomic).
+    rig : Rig
+        Vertices laid out as :func:`read_meshes` returns them for ``meshes`` (same count);
+        its ``deltas`` become the targets, named ``rig.names``, at weight 0.
+    meshes : sequence of int or str, optional, keyword-only
+        As :func:`read_meshes`.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    RigError
+        If the rig's vertex count differs from the chosen meshes', or it has no targets.
+    """
+    path, source = Path(path), Path(source)
+    _check_suffix(path)
+    document, buffers = load_document(source)
+    chosen = _choose_meshes(document, meshes, source)
+    _, parts = read_parts(document, buffers, chosen, source)
+    _check_layout(rig, parts, source)
+    blob = edit.pack(document, buffers, source)
+    _set_targets(document, blob, rig, parts)
+    edit.drop_weight_channels(document, edit.morph_nodes(document, chosen))
+    edit.root_skinned_meshes(document)
+    blob.finish()
+    return _save(path, document)
+
+
+def _check_layout(rig: Rig, parts: list[Part], source) -> None:
+    n_vertices = max((p.start + p.count for p in parts), default=0)
+    if rig.n_vertices != n_vertices:
+        raise RigError(f"{str(source)!r}: the chosen meshes have {n_vertices} vertices but the rig has "
+                       f"{rig.n_vertices}; targets must be laid out as read_meshes() returns them")
+    if rig.n_targets == 0:
+        raise RigError("the rig has no targets to write")
+
+
+def _set_targets(document, blob: edit.Blob, rig: Rig, parts: list[Part]) -> None:
+    blocks: dict[int, list[dict]] = {}
+    for part in parts:
+        if part.start not in blocks:
+            block = rig.deltas[:, part.start:part.start + part.count]
+            blocks[part.start] = [{"POSITION": blob.add_target(delta)} for delta in block]
+        primitive = document.meshes[part.mesh].primitives[part.primitive]
+        primitive.targets = [dict(t) for t in blocks[part.start]]
+        if isinstance(primitive.extras, dict):
+            primitive.extras.pop("targetNames", None)
+    for mesh_index in dict.fromkeys(p.mesh for p in parts):
+        mesh = document.meshes[mesh_index]
+        mesh.weights = [0.0] * rig.n_targets
+        mesh.extras = {**(mesh.extras if isinstance(mesh.extras, dict) else {}),
+                       "targetNames": list(rig.names)}

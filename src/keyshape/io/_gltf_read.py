@@ -1,0 +1,368 @@
+"""Reading glTF 2.0 (private half of :mod:`keyshape.io.gltf`): accessors, rigs, animations.
+
+A glTF rig is every primitive of the meshes that carry morph targets, concatenated into one
+:class:`~keyshape.containers.Rig`. Primitives that share one ``POSITION`` accessor (one vertex
+buffer split by material) share one block of rig vertices. :class:`Part` records where each
+primitive's vertices sit in the rig, so edited targets can be written back into the file.
+
+References
+----------
+The Khronos Group, *glTF 2.0 Specification*, sections 3.6 (accessors, sparse accessors),
+3.7.2.2 (morph targets) and 3.11 (animations).
+"""
+
+from __future__ import annotations
+
+import base64
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import pygltflib
+
+from ..containers import Rig
+from ..exceptions import InputError, RigError
+
+COMPONENT_DTYPES = {
+    pygltflib.BYTE: np.int8,
+    pygltflib.UNSIGNED_BYTE: np.uint8,
+    pygltflib.SHORT: np.int16,
+    pygltflib.UNSIGNED_SHORT: np.uint16,
+    pygltflib.UNSIGNED_INT: np.uint32,
+    pygltflib.FLOAT: np.float32,
+}
+N_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+# Our own animations; when a file has several, these are read first.
+ANIMATION_NAMES = ("keyshape", "performance")
+# Geometry we cannot decode: the file can still be animated, not read as a rig.
+_COMPRESSION = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
+
+
+class GlbAnimation(NamedTuple):
+    """A morph-weight animation read back from a glTF file.
+
+    Attributes
+    ----------
+    names : tuple of n_targets str
+        Union of the target names of every mesh the animation's ``weights`` channels drive.
+    times : (n_frames,) float, seconds
+    weights : (n_frames, n_targets) float
+    rotations : (n_frames, 4) float or None
+        Quaternions (x, y, z, w) of the animation's head ``rotation`` channel, as stored (the
+        node's local rotation), or None.
+    """
+
+    names: tuple[str, ...]
+    times: np.ndarray
+    weights: np.ndarray
+    rotations: np.ndarray | None
+
+
+class Part(NamedTuple):
+    """Where one primitive's vertices sit in a rig read from a glTF file.
+
+    Attributes
+    ----------
+    mesh, primitive : int
+        Indices into ``document.meshes`` and ``mesh.primitives``.
+    start, count : int
+        The primitive's vertices are ``rig.vertices[start:start + count]``.
+    """
+
+    mesh: int
+    primitive: int
+    start: int
+    count: int
+
+
+# --------------------------------------------------------------------------- files and accessors
+
+
+def load_document(path) -> tuple[pygltflib.GLTF2, list[bytes]]:
+    """The glTF document at ``path`` and the bytes of each of its buffers."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"no such glTF file: {str(path)!r}")
+    try:
+        document = pygltflib.GLTF2().load(str(path))
+    except Exception as error:  # pygltflib raises bare exceptions on malformed input
+        raise InputError(f"cannot read {str(path)!r} as glTF: {error}") from error
+    if document is None:
+        raise InputError(f"cannot read {str(path)!r} as glTF")
+    return document, [_buffer_bytes(document, buffer, path) for buffer in document.buffers]
+
+
+def _buffer_bytes(document: pygltflib.GLTF2, buffer: pygltflib.Buffer, path: Path) -> bytes:
+    if buffer.uri is None:
+        return document.binary_blob() or b""
+    return read_uri(buffer.uri, path)
+
+
+def read_uri(uri: str, path: Path) -> bytes:
+    """The bytes behind a buffer or image ``uri`` (data URI or a file beside ``path``)."""
+    if uri.startswith("data:"):
+        return base64.b64decode(uri.split(",", 1)[1])
+    from urllib.parse import unquote
+
+    resource = path.parent / unquote(uri)
+    if not resource.is_file():
+        raise InputError(f"{str(path)!r} refers to a missing file {str(resource)!r}")
+    return resource.read_bytes()
+
+
+def read_accessor(document: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarray:
+    """Accessor ``index`` as a ``(count, n_components)`` float array (strides, sparse, normalized)."""
+    accessor = document.accessors[index]
+    dtype = np.dtype(COMPONENT_DTYPES[accessor.componentType]).newbyteorder("<")
+    width = N_COMPONENTS[accessor.type]
+    if accessor.bufferView is None:
+        out = np.zeros((accessor.count, width))
+    else:
+        out = _read_view(document, buffers, accessor.bufferView, accessor.byteOffset or 0,
+                         dtype, accessor.count, width)
+    out = _dequantize(out, dtype) if accessor.normalized else out.astype(float)
+    if accessor.sparse is not None:
+        out = _apply_sparse(document, buffers, accessor, out, dtype, width)
+    return out
+
+
+def _read_view(document, buffers, view_index, offset, dtype, count, width) -> np.ndarray:
+    """(count, width) elements of ``dtype`` from a buffer view, honouring ``byteStride``."""
+    view = document.bufferViews[view_index]
+    element = dtype.itemsize * width
+    stride = view.byteStride or element
+    if count == 0:
+        return np.zeros((0, width), dtype)
+    start = (view.byteOffset or 0) + offset
+    raw = np.frombuffer(buffers[view.buffer], np.uint8, (count - 1) * stride + element, start)
+    rows = np.lib.stride_tricks.as_strided(raw, shape=(count, element), strides=(stride, 1))
+    return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
+
+
+def _dequantize(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """glTF normalized integers to floats (spec 3.11, 'Animations', and 3.6.2.3)."""
+    if dtype.kind == "f":
+        return values.astype(float)
+    scale = float(np.iinfo(dtype).max)
+    return np.maximum(values.astype(float) / scale, -1.0)
+
+
+def _apply_sparse(document, buffers, accessor, out, dtype, width) -> np.ndarray:
+    sparse = accessor.sparse
+    index_dtype = np.dtype(COMPONENT_DTYPES[sparse.indices.componentType]).newbyteorder("<")
+    rows = _read_view(document, buffers, sparse.indices.bufferView, sparse.indices.byteOffset or 0,
+                      index_dtype, sparse.count, 1)[:, 0].astype(np.int64)
+    values = _read_view(document, buffers, sparse.values.bufferView, sparse.values.byteOffset or 0,
+                        dtype, sparse.count, width)
+    out = out.copy()
+    out[rows] = _dequantize(values, dtype) if accessor.normalized else values
+    return out
+
+
+# --------------------------------------------------------------------------- rigs
+
+
+def target_names(mesh: pygltflib.Mesh) -> list[str]:
+    """Morph target names of a mesh: ``mesh.extras.targetNames`` (or, as some exporters write
+    them, the first primitive's ``extras.targetNames``); empty when unnamed."""
+    for extras in (mesh.extras, *(p.extras for p in mesh.primitives[:1])):
+        names = (extras or {}).get("targetNames") if isinstance(extras, dict) else None
+        if names:
+            return [str(n) for n in names]
+    return []
+
+
+def morph_meshes(document: pygltflib.GLTF2, path) -> list[int]:
+    """Indices of the meshes with morph targets, after checking each names all of them."""
+    found = []
+    for index, mesh in enumerate(document.meshes):
+        counts = {len(p.targets) for p in mesh.primitives if p.targets}
+        if not counts:
+            continue
+        names = target_names(mesh)
+        if counts != {len(names)}:
+            raise RigError(
+                f"{str(path)!r}: mesh {index} ({mesh.name or 'unnamed'}) has {sorted(counts)} morph targets "
+                f"but {len(names)} names in mesh.extras.targetNames; targets must be named to match keys"
+            )
+        found.append(index)
+    return found
+
+
+def read_parts(document, buffers, meshes, path) -> tuple[Rig, list[Part]]:
+    """The primitives of ``meshes`` (indices) as one rig, and where each primitive sits in it.
+
+    Target names are the union over the meshes (in order of first appearance); a primitive
+    lacking a name contributes zero deltas for it. Vertices are in mesh-local coordinates.
+    """
+    _check_decodable(document, path)
+    blocks, parts, faces, offset = {}, [], [], 0
+    for m in meshes:
+        mesh = document.meshes[m]
+        names = target_names(mesh)
+        for p, primitive in enumerate(mesh.primitives):
+            key = _block_key(primitive)
+            if key not in blocks:
+                blocks[key] = (offset, _read_block(document, buffers, primitive, names, path))
+                offset += len(blocks[key][1][0])
+            start, (vertices, _) = blocks[key]
+            parts.append(Part(m, p, start, len(vertices)))
+            faces.append(_read_faces(document, buffers, primitive, len(vertices), path) + start)
+    return _assemble([b for _, b in blocks.values()], faces), parts
+
+
+def _check_decodable(document, path) -> None:
+    used = [e for e in (document.extensionsUsed or []) if e in _COMPRESSION]
+    if used:
+        raise RigError(f"{str(path)!r} uses {used}: compressed geometry cannot be read as a rig; "
+                       "export it without compression")
+
+
+def _block_key(primitive) -> tuple:
+    targets = tuple((t or {}).get("POSITION") for t in (primitive.targets or []))
+    return primitive.attributes.POSITION, targets
+
+
+def _read_block(document, buffers, primitive, names, path):
+    """Vertices ``(n, 3)`` and ``{name: delta (n, 3)}`` of one primitive."""
+    if primitive.attributes.POSITION is None:
+        raise RigError(f"{str(path)!r}: a mesh primitive has no POSITION attribute")
+    vertices = read_accessor(document, buffers, primitive.attributes.POSITION)
+    deltas = {}
+    for name, target in zip(names, primitive.targets or []):
+        index = (target or {}).get("POSITION")
+        deltas[name] = read_accessor(document, buffers, index) if index is not None else np.zeros_like(vertices)
+    return vertices, deltas
+
+
+def _read_faces(document, buffers, primitive, n_vertices, path) -> np.ndarray:
+    if primitive.indices is None:
+        indices = np.arange(n_vertices)
+    else:
+        indices = read_accessor(document, buffers, primitive.indices)[:, 0].astype(np.int64)
+    return triangles(indices, primitive.mode, path)
+
+
+def triangles(indices: np.ndarray, mode, path="glTF") -> np.ndarray:
+    """(n_faces, 3) triangles from a primitive's index list and its mode (4, 5 or 6)."""
+    mode = pygltflib.TRIANGLES if mode is None else mode
+    if mode == pygltflib.TRIANGLES:
+        return indices[: len(indices) // 3 * 3].reshape(-1, 3)
+    if mode == pygltflib.TRIANGLE_STRIP:
+        tris = np.stack([indices[:-2], indices[1:-1], indices[2:]], axis=1)
+        tris[1::2] = tris[1::2][:, [1, 0, 2]]  # keep the winding of odd triangles
+        return tris
+    if mode == pygltflib.TRIANGLE_FAN:
+        return np.stack([np.full(len(indices) - 2, indices[0]), indices[1:-1], indices[2:]], axis=1)
+    raise RigError(f"{str(path)!r}: a primitive has mode {mode} (points or lines); expected triangles")
+
+
+def _assemble(blocks, faces) -> Rig:
+    names = list(dict.fromkeys(name for _, deltas in blocks for name in deltas))
+    vertices = np.concatenate([v for v, _ in blocks]) if blocks else np.zeros((0, 3))
+    deltas = np.stack([
+        np.concatenate([d.get(name, np.zeros_like(v)) for v, d in blocks]) for name in names
+    ]) if names else np.zeros((0, *vertices.shape))
+    return Rig(vertices, np.concatenate(faces) if faces else np.zeros((0, 3), int), deltas, tuple(names))
+
+
+def read_rig(path) -> Rig:
+    """Load the morph-target meshes of a glTF file as one :class:`Rig`.
+
+    Every primitive of every mesh that has morph targets is kept and their vertices are
+    concatenated, faces offset (primitives sharing a vertex buffer share their vertices).
+    Target names come from each mesh's ``extras.targetNames``; a mesh lacking one of the union
+    of names contributes zero deltas for it. Vertices are taken **as stored**, in mesh-local
+    coordinates (glTF: metres, +Y up): node transforms and skinning are not applied, since
+    morph targets act before both. Meshes without morph targets (body, props) are ignored.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.glb`` or ``.gltf`` (external, embedded or GLB-stored buffers).
+
+    Returns
+    -------
+    Rig
+
+    Raises
+    ------
+    RigError
+        If no mesh has morph targets, a mesh with targets does not name them, or its
+        geometry is compressed.
+    """
+    document, buffers = load_document(path)
+    meshes = morph_meshes(document, path)
+    if not meshes:
+        raise RigError(f"{str(path)!r} has no morph targets: it cannot be driven as a blendshape rig")
+    return read_parts(document, buffers, meshes, path)[0]
+
+
+# --------------------------------------------------------------------------- animations
+
+
+def read_glb_animation(path, *, animation: str | int | None = None) -> GlbAnimation:
+    """Read back a morph-weight animation of a glTF file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.glb`` or ``.gltf`` file, such as one written by :func:`keyshape.io.gltf.write_glb`
+        or :func:`keyshape.io.gltf.animate_gltf`.
+    animation : str or int, optional, keyword-only
+        Which animation (name or index). Default: one named ``keyshape`` or ``performance``,
+        else the first with a ``weights`` channel.
+
+    Returns
+    -------
+    GlbAnimation
+        Weights of every mesh the animation drives, by target name; ``rotations`` of its
+        ``rotation`` channel when it has exactly one.
+
+    Raises
+    ------
+    InputError
+        If the file has no such animation, or none with a ``weights`` channel.
+    """
+    document, buffers = load_document(path)
+    chosen = _choose_animation(document, animation, path)
+    return _read_animation(document, buffers, chosen)
+
+
+def _choose_animation(document, animation, path):
+    animations = document.animations
+    if isinstance(animation, int):
+        if not 0 <= animation < len(animations):
+            raise InputError(f"{str(path)!r} has {len(animations)} animations; no index {animation}")
+        return animations[animation]
+    with_weights = [a for a in animations if any(c.target.path == "weights" for c in a.channels)]
+    if animation is not None:
+        named = [a for a in with_weights if a.name == animation]
+        if not named:
+            raise InputError(f"{str(path)!r} has no animation {animation!r} with a 'weights' channel; "
+                             f"it has {[a.name for a in with_weights]}")
+        return named[0]
+    if not with_weights:
+        raise InputError(f"{str(path)!r} has no animation with a 'weights' channel")
+    ours = [a for name in ANIMATION_NAMES for a in with_weights if a.name == name]
+    return (ours or with_weights)[0]
+
+
+def _read_animation(document, buffers, animation) -> GlbAnimation:
+    columns, times = {}, None
+    for channel in animation.channels:
+        if channel.target.path != "weights":
+            continue
+        sampler = animation.samplers[channel.sampler]
+        times = read_accessor(document, buffers, sampler.input)[:, 0] if times is None else times
+        values = read_accessor(document, buffers, sampler.output).reshape(len(times), -1)
+        names = target_names(document.meshes[document.nodes[channel.target.node].mesh])
+        for k, name in enumerate(names):
+            columns.setdefault(name, values[:, k])
+    names = tuple(columns)
+    weights = np.stack([columns[n] for n in names], axis=1) if names else np.zeros((len(times), 0))
+    rotation = [c for c in animation.channels if c.target.path == "rotation"]
+    rotations = None
+    if len(rotation) == 1:
+        rotations = read_accessor(document, buffers, animation.samplers[rotation[0].sampler].output)
+    return GlbAnimation(names, times, weights, rotations)

@@ -1,0 +1,117 @@
+"""Write an animation in the format a file name (or an explicit format) asks for.
+
+============  ===============================  ==================================================
+format        suffixes                         writer
+============  ===============================  ==================================================
+``glb``       ``.glb``                         :func:`keyshape.io.gltf.animate_gltf` onto the
+                                               original glTF rig when there is one, else
+                                               :func:`keyshape.io.gltf.write_glb`
+``usd``       ``.usd`` ``.usda`` ``.usdc``     :func:`keyshape.io.usd.write_usd` (``usd-core``)
+              ``.usdz``
+``csv``       ``.csv``                         :func:`keyshape.io.weights_csv.save_weights_csv`
+``livelink``  (``--format livelink``; a        :func:`keyshape.io.livelink.write_livelink_csv`
+              ``.csv`` name)
+============  ===============================  ==================================================
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+
+from ..containers import Poses, Rig, Weights
+from ..exceptions import InputError
+
+__all__ = ["Format", "export", "format_of"]
+
+
+class Format(str, Enum):
+    """The export formats."""
+
+    GLB = "glb"
+    USD = "usd"
+    CSV = "csv"
+    LIVELINK = "livelink"
+
+
+_SUFFIXES = {".glb": Format.GLB, ".usd": Format.USD, ".usda": Format.USD, ".usdc": Format.USD,
+             ".usdz": Format.USD, ".csv": Format.CSV}
+_NEEDS_RIG = (Format.GLB, Format.USD)
+
+
+def format_of(path, format: str | Format | None = None) -> Format:
+    """The format for ``path``: ``format`` when given (checked against the suffix), else the suffix.
+
+    Examples
+    --------
+    >>> format_of("take.usda"), format_of("take.csv", "livelink")
+    (<Format.USD: 'usd'>, <Format.LIVELINK: 'livelink'>)
+    """
+    suffix = Path(path).suffix.lower()
+    if format is None:
+        if suffix not in _SUFFIXES:
+            raise InputError(f"cannot tell the format of {str(path)!r} from its suffix; use one of "
+                             f"{sorted(_SUFFIXES)} or give a format ({', '.join(f.value for f in Format)})")
+        return _SUFFIXES[suffix]
+    try:
+        chosen = Format(str(getattr(format, "value", format)).lower())
+    except ValueError:
+        raise InputError(f"unknown format {format!r}; choose from {', '.join(f.value for f in Format)}") from None
+    expected = Format.CSV if chosen is Format.LIVELINK else chosen
+    if _SUFFIXES.get(suffix) is not expected:
+        wanted = sorted(s for s, f in _SUFFIXES.items() if f is expected)
+        raise InputError(f"{str(path)!r}: format {chosen.value} is written to a file ending in {' or '.join(wanted)}")
+    return chosen
+
+
+def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | None = None,
+           format: str | Format | None = None, source=None) -> Path:
+    """Write ``animation`` to ``path`` in the chosen format, atomically.
+
+    Parameters
+    ----------
+    animation : Weights
+        Target weights ``(n_frames, n_targets)``, named by rig targets (from
+        :func:`keyshape.retarget.retarget`): in rig order for ``glb`` and ``usd`` written from
+        ``rig``; any subset of the original file's targets for ``glb`` onto ``source``.
+    path : str or Path
+    rig : Rig, optional, keyword-only
+        Needed for ``usd``, and for ``glb`` without ``source``.
+    poses : Poses, optional, keyword-only
+        Head poses (image convention) for ``glb``, ``usd`` and ``livelink``; ignored by ``csv``.
+    format : str or Format, optional, keyword-only
+        Default: from the suffix (``livelink`` must be asked for).
+    source : str or Path, optional, keyword-only
+        The original ``.glb``/``.gltf`` the rig came from: ``glb`` output keeps that file whole
+        and adds the animation.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    InputError
+        Unknown format or suffix, or ``rig`` missing where it is needed.
+    """
+    chosen = format_of(path, format)
+    glb_source = source is not None and Path(source).suffix.lower() in (".glb", ".gltf")
+    if chosen in _NEEDS_RIG and rig is None and not (chosen is Format.GLB and glb_source):
+        raise InputError(f"writing {chosen.value} needs the rig")
+    if chosen is Format.GLB:
+        from .gltf import animate_gltf, write_glb
+
+        if glb_source:
+            return animate_gltf(source, animation, path, poses=poses)
+        return write_glb(path, rig, animation, poses=poses)
+    if chosen is Format.USD:
+        from .usd import write_usd
+
+        return write_usd(path, rig, animation, poses=poses)
+    if chosen is Format.LIVELINK:
+        from .livelink import write_livelink_csv
+
+        return write_livelink_csv(path, animation, poses=poses)
+    from .weights_csv import save_weights_csv
+
+    return save_weights_csv(animation, path)

@@ -1,0 +1,436 @@
+"""USD: UsdSkel blend-shape rigs in, blend-shape (and head-joint) animation out.
+
+The only module that imports ``pxr`` (``pip install usd-core``). A written file holds::
+
+    /Character            SkelRoot (defaultPrim)
+      Skel                Skeleton, one joint "head" at the origin; skel:animationSource -> Anim
+      Anim                SkelAnimation: blendShapes, blendShapeWeights (time-sampled per frame),
+                          the head joint's rotations (time-sampled when poses are given)
+      face                Mesh bound to Skel (every point rigidly on "head"), skel:blendShapes
+        <target>          BlendShape per target: offsets + pointIndices (moving points only)
+
+Stage metadata: ``metersPerUnit = 1`` (the rig is in metres), ``upAxis = "Y"`` (glTF's axes,
+so no conversion), ``timeCodesPerSecond = framesPerSecond = fps``, time code ``f`` = frame ``f``,
+``startTimeCode = 0``, ``endTimeCode = n_frames − 1``. Target names become blend-shape *channel*
+names as they are (tokens); the BlendShape prims get valid identifiers made from them.
+
+References
+----------
+Pixar, *UsdSkel* schema documentation: "Blend Shapes", "Skel Animation", "Skel Binding".
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from ..containers import Poses, Rig, Weights
+from ..exceptions import InputError, MissingDependencyError, RigError
+from .atomic import atomic_path
+
+__all__ = ["write_usd", "read_rig", "read_usd_animation", "deformed_points", "check_usd",
+           "UsdAnimation", "USD_SUFFIXES"]
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+ROOT, SKELETON, ANIMATION, MESH, JOINT = "/Character", "Skel", "Anim", "face", "head"
+
+
+def _pxr():
+    """The pxr modules, or a MissingDependencyError with the install command."""
+    try:
+        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdUtils, Vt
+    except ImportError:
+        raise MissingDependencyError("usd-core", extra="usd") from None
+    return Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdUtils, Vt
+
+
+class UsdAnimation(NamedTuple):
+    """A blend-shape animation read back from a USD file.
+
+    Attributes
+    ----------
+    names : tuple of n_targets str
+    times : (n_frames,) float, seconds (time code / timeCodesPerSecond)
+    weights : (n_frames, n_targets) float
+    rotations : (n_frames, 4) float quaternions (x, y, z, w) of the first joint, or None
+    """
+
+    names: tuple[str, ...]
+    times: np.ndarray
+    weights: np.ndarray
+    rotations: np.ndarray | None
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_usd(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -> Path:
+    """Write a rig and its weight animation as a UsdSkel file, atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.usda`` (text), ``.usdc``/``.usd`` (binary crate) or ``.usdz`` (package).
+    rig : Rig
+        In metres, +Y up (glTF's convention; written unconverted with ``metersPerUnit = 1``).
+    weights : Weights
+        ``values (n_frames, n_targets)`` named exactly ``rig.names`` in order; NaN is written as 0.
+    poses : Poses, optional
+        Head poses in image convention (as :func:`keyshape.io.gltf.write_glb`), written as the
+        time-sampled rotation of the joint ``head``, which carries every point.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    MissingDependencyError
+        Without ``usd-core``.
+    RigError, InputError
+        As :func:`keyshape.io.gltf.write_glb` (names, frame counts), or a bad suffix.
+    """
+    from .gltf import _check_names, _check_poses, _pose_quaternions
+
+    path = Path(path)
+    if path.suffix.lower() not in USD_SUFFIXES:
+        raise InputError(f"USD output must end in one of {USD_SUFFIXES}; got {str(path)!r}")
+    _check_names(rig.names, weights)
+    _check_poses(poses, weights)
+    quats = None if poses is None else _pose_quaternions(poses)
+    stage = _build_stage(rig, weights, quats)
+    with atomic_path(path) as tmp:
+        _export(stage, tmp)
+    return path
+
+
+def _export(stage, tmp: Path) -> None:
+    _, _, _, _, _, _, UsdUtils, _ = _pxr()
+    if tmp.suffix.lower() != ".usdz":
+        if not stage.GetRootLayer().Export(str(tmp)):
+            raise InputError(f"USD could not write {str(tmp)!r}")
+        return
+    layer = tmp.with_name(tmp.stem + ".usdc")
+    try:
+        stage.GetRootLayer().Export(str(layer))
+        if not UsdUtils.CreateNewUsdzPackage(str(layer), str(tmp)):
+            raise InputError(f"USD could not package {str(tmp)!r}")
+    finally:
+        layer.unlink(missing_ok=True)
+
+
+def _build_stage(rig: Rig, weights: Weights, quats: np.ndarray | None):
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdUtils, Vt = _pxr()
+    stage = Usd.Stage.CreateInMemory()
+    _set_metadata(stage, weights)
+    root = UsdSkel.Root.Define(stage, ROOT)
+    stage.SetDefaultPrim(root.GetPrim())
+    skeleton = _skeleton(stage)
+    mesh = _mesh(stage, rig)
+    _blend_shapes(stage, mesh, skeleton, rig)
+    _animation(stage, skeleton, rig, weights, quats)
+    return stage
+
+
+def _set_metadata(stage, weights: Weights) -> None:
+    _, _, _, _, UsdGeom, _, _, _ = _pxr()
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    stage.SetTimeCodesPerSecond(weights.fps)
+    stage.SetFramesPerSecond(weights.fps)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(max(weights.n_frames - 1, 0))
+
+
+def _skeleton(stage):
+    Gf, _, _, _, _, UsdSkel, _, Vt = _pxr()
+    skeleton = UsdSkel.Skeleton.Define(stage, f"{ROOT}/{SKELETON}")
+    skeleton.CreateJointsAttr([JOINT])
+    identity = Vt.Matrix4dArray([Gf.Matrix4d(1.0)])
+    skeleton.CreateBindTransformsAttr(identity)
+    skeleton.CreateRestTransformsAttr(identity)
+    return skeleton
+
+
+def _mesh(stage, rig: Rig):
+    _, _, _, _, UsdGeom, _, _, Vt = _pxr()
+    mesh = UsdGeom.Mesh.Define(stage, f"{ROOT}/{MESH}")
+    points = rig.vertices.astype(np.float32)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(rig.faces), 3, dtype=np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(rig.faces.reshape(-1).astype(np.int32)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateDoubleSidedAttr(True)
+    extent = np.stack([points.min(axis=0), points.max(axis=0)]) if len(points) else np.zeros((2, 3), np.float32)
+    mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(extent.astype(np.float32)))
+    return mesh
+
+
+def _blend_shapes(stage, mesh, skeleton, rig: Rig) -> None:
+    Gf, _, Tf, _, _, UsdSkel, _, Vt = _pxr()
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
+    binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    paths = []
+    for name, identifier, delta in zip(rig.names, _identifiers(rig.names, Tf), rig.deltas):
+        shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(identifier))
+        moved = np.flatnonzero(np.any(delta != 0, axis=1)).astype(np.int32)
+        shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta[moved], dtype=np.float32)))
+        shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moved))
+        paths.append(shape.GetPath())
+    binding.CreateBlendShapesAttr(list(rig.names))
+    binding.CreateBlendShapeTargetsRel().SetTargets(paths)
+
+
+def _identifiers(names, Tf) -> list[str]:
+    """Valid, unique prim names made from target names."""
+    out, seen = [], set()
+    for name in names:
+        base = Tf.MakeValidIdentifier(name)
+        candidate, k = base, 1
+        while candidate in seen:
+            candidate, k = f"{base}_{k}", k + 1
+        seen.add(candidate)
+        out.append(candidate)
+    return out
+
+
+def _animation(stage, skeleton, rig: Rig, weights: Weights, quats: np.ndarray | None) -> None:
+    Gf, _, _, Usd, _, UsdSkel, _, Vt = _pxr()
+    animation = UsdSkel.Animation.Define(stage, f"{ROOT}/{ANIMATION}")
+    animation.CreateJointsAttr([JOINT])
+    animation.CreateBlendShapesAttr(list(rig.names))
+    animation.CreateTranslationsAttr(Vt.Vec3fArray([Gf.Vec3f(0.0)]))
+    animation.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1.0)]))
+    values = np.nan_to_num(weights.values, nan=0.0).astype(np.float32)
+    channel = animation.CreateBlendShapeWeightsAttr()
+    for frame, row in enumerate(values):
+        channel.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(frame))
+    rotations = animation.CreateRotationsAttr()
+    if quats is None:
+        rotations.Set(Vt.QuatfArray([Gf.Quatf(1.0)]))
+    for frame, (x, y, z, w) in enumerate([] if quats is None else quats):
+        rotations.Set(Vt.QuatfArray([Gf.Quatf(float(w), float(x), float(y), float(z))]), Usd.TimeCode(frame))
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([animation.GetPath()])
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _open(path):
+    _, _, _, Usd, _, _, _, _ = _pxr()
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"no such USD file: {str(path)!r}")
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Exception as error:  # pxr raises Tf.ErrorException
+        raise InputError(f"cannot read {str(path)!r} as USD: {str(error).strip().splitlines()[-1]}") from None
+    if stage is None:
+        raise InputError(f"cannot read {str(path)!r} as USD")
+    return stage
+
+
+def read_rig(path) -> Rig:
+    """Load the UsdSkel blend shapes of a USD file as one :class:`Rig`.
+
+    Every Mesh with bound blend shapes (``skel:blendShapes`` and ``skel:blendShapeTargets``)
+    is kept; meshes are concatenated (faces offset, polygons fan-triangulated) and names are
+    the union of their blend-shape channel names (a mesh lacking one contributes zero deltas).
+    Points and offsets are mesh-local, converted to metres (``metersPerUnit``) and to +Y up
+    (``upAxis = "Z"``: ``(x, y, z) -> (x, z, −y)``). In-between shapes are ignored.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Rig
+
+    Raises
+    ------
+    RigError
+        If no mesh has blend shapes.
+    MissingDependencyError
+        Without ``usd-core``.
+    """
+    _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
+    stage = _open(path)
+    parts = [_read_mesh(prim) for prim in stage.Traverse()
+             if prim.IsA(UsdGeom.Mesh) and prim.HasAPI(UsdSkel.BindingAPI)]
+    parts = [p for p in parts if p is not None]
+    if not parts:
+        raise RigError(f"{str(path)!r} has no meshes with UsdSkel blend shapes to drive")
+    rig = _concatenate(parts)
+    return _to_gltf_axes(rig, UsdGeom.GetStageMetersPerUnit(stage), UsdGeom.GetStageUpAxis(stage))
+
+
+def _read_mesh(prim):
+    _, _, _, _, UsdGeom, UsdSkel, _, _ = _pxr()
+    binding = UsdSkel.BindingAPI(prim)
+    names = list(binding.GetBlendShapesAttr().Get() or [])
+    targets = list(binding.GetBlendShapeTargetsRel().GetTargets())
+    if not names:
+        return None
+    if len(names) != len(targets):
+        raise RigError(f"{prim.GetPath()}: {len(names)} skel:blendShapes but {len(targets)} blendShapeTargets")
+    mesh = UsdGeom.Mesh(prim)
+    points = np.asarray(mesh.GetPointsAttr().Get(), dtype=float).reshape(-1, 3)
+    faces = _triangulate(np.asarray(mesh.GetFaceVertexCountsAttr().Get(), dtype=np.int64),
+                         np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64))
+    stage = prim.GetStage()
+    deltas = {str(n): _offsets(UsdSkel.BlendShape(stage.GetPrimAtPath(t)), len(points), t)
+              for n, t in zip(names, targets)}
+    return points, faces, deltas
+
+
+def _offsets(shape, n_points: int, where) -> np.ndarray:
+    if not shape:
+        raise RigError(f"blend-shape target {where} is not a BlendShape prim")
+    offsets = np.asarray(shape.GetOffsetsAttr().Get() or [], dtype=float).reshape(-1, 3)
+    indices = shape.GetPointIndicesAttr().Get()
+    delta = np.zeros((n_points, 3))
+    if indices is None:
+        if len(offsets) != n_points:
+            raise RigError(f"{where}: {len(offsets)} offsets for {n_points} points and no pointIndices")
+        return offsets
+    delta[np.asarray(indices, dtype=np.int64)] = offsets
+    return delta
+
+
+def _triangulate(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """Fan-triangulate polygons (counts, flat corner indices) into (n_faces, 3)."""
+    if counts.size == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    starts = np.cumsum(counts) - counts
+    n_triangles = np.maximum(counts - 2, 0)
+    first = np.repeat(starts, n_triangles)
+    k = np.arange(n_triangles.sum()) - np.repeat(np.cumsum(n_triangles) - n_triangles, n_triangles) + 1
+    return np.stack([indices[first], indices[first + k], indices[first + k + 1]], axis=1)
+
+
+def _concatenate(parts) -> Rig:
+    names = list(dict.fromkeys(n for _, _, d in parts for n in d))
+    offsets = np.cumsum([0] + [len(p) for p, _, _ in parts])
+    vertices = np.concatenate([p for p, _, _ in parts])
+    faces = np.concatenate([f + o for (_, f, _), o in zip(parts, offsets)])
+    deltas = np.stack([np.concatenate([d.get(n, np.zeros_like(p)) for p, _, d in parts]) for n in names])
+    return Rig(vertices, faces, deltas, tuple(names))
+
+
+def _to_gltf_axes(rig: Rig, meters_per_unit: float, up_axis) -> Rig:
+    """Metres and +Y up: scale by metersPerUnit; Z-up ``(x, y, z) -> (x, z, −y)`` (a rotation)."""
+    convert = np.eye(3) * meters_per_unit
+    if str(up_axis) == "Z":
+        convert = convert @ np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]).T
+    return Rig(rig.vertices @ convert, rig.faces, rig.deltas @ convert, rig.names)
+
+
+def read_usd_animation(path) -> UsdAnimation:
+    """Read back the first SkelAnimation of a USD file (weights per time sample).
+
+    Returns
+    -------
+    UsdAnimation
+        ``times`` in seconds; ``rotations`` are the first joint's, when time-sampled.
+
+    Raises
+    ------
+    InputError
+        If the file has no SkelAnimation with blend-shape weights.
+    """
+    _, _, _, Usd, _, UsdSkel, _, _ = _pxr()
+    stage = _open(path)
+    animation = next((UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation)), None)
+    if animation is None or not animation.GetBlendShapeWeightsAttr().HasAuthoredValue():
+        raise InputError(f"{str(path)!r} has no SkelAnimation with blend-shape weights")
+    names = tuple(str(n) for n in animation.GetBlendShapesAttr().Get())
+    attribute = animation.GetBlendShapeWeightsAttr()
+    codes = attribute.GetTimeSamples()
+    weights = np.array([np.asarray(attribute.Get(t), dtype=float) for t in codes]).reshape(len(codes), len(names))
+    return UsdAnimation(names, np.asarray(codes, dtype=float) / stage.GetTimeCodesPerSecond(), weights,
+                        _joint_rotations(animation.GetRotationsAttr()))
+
+
+def _joint_rotations(attribute) -> np.ndarray | None:
+    codes = attribute.GetTimeSamples()
+    if not codes:
+        return None
+    quats = [attribute.Get(t)[0] for t in codes]
+    return np.array([[*q.GetImaginary(), q.GetReal()] for q in quats], dtype=float)
+
+
+def deformed_points(path, frame: int) -> np.ndarray:
+    """(n_points, 3) float: the first blend-shape mesh at ``frame`` as UsdSkel computes it.
+
+    Blend shapes only (``UsdSkel.BlendShapeQuery``, weights from the bound SkelAnimation);
+    skinning and unit conversion are not applied. For checking written files.
+    """
+    _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
+    stage = _open(path)
+    cache = UsdSkel.Cache()
+    for root in (p for p in stage.Traverse() if p.IsA(UsdSkel.Root)):
+        cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())
+        for binding in cache.ComputeSkelBindings(UsdSkel.Root(root), Usd.TraverseInstanceProxies()):
+            query = cache.GetSkelQuery(binding.GetSkeleton())
+            for target in binding.GetSkinningTargets():
+                return _blend_target(target, query, frame)
+    raise InputError(f"{str(path)!r} has no skinned blend-shape mesh")
+
+
+def _blend_target(target, query, frame: int) -> np.ndarray:
+    _, _, _, Usd, UsdGeom, UsdSkel, _, Vt = _pxr()
+    prim = target.GetPrim()
+    shapes = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(prim))
+    weights = query.GetAnimQuery().ComputeBlendShapeWeights(Usd.TimeCode(frame))
+    mapped = target.GetBlendShapeMapper().Remap(weights) if target.GetBlendShapeMapper() else weights
+    sub = shapes.ComputeSubShapeWeights(mapped)
+    points = UsdGeom.Mesh(prim).GetPointsAttr().Get()
+    indices = shapes.ComputeBlendShapePointIndices()
+    offsets = shapes.ComputeSubShapePointOffsets()
+    ok = shapes.ComputeDeformedPoints(sub[0], sub[1], sub[2], indices, offsets, points)
+    if not ok:
+        raise InputError(f"UsdSkel could not deform {prim.GetPath()}")
+    return np.asarray(points, dtype=float)
+
+
+# --------------------------------------------------------------------------- checking
+
+
+def check_usd(path) -> list[str]:
+    """Problems USD's own checkers report for a file (what ``usdchecker`` runs).
+
+    ``UsdValidation`` with every registered validator (usd-core ≥ 24.11; ``usdchecker``
+    uses it), and ``UsdUtils.ComplianceChecker`` where the installed usd-core still has it.
+
+    Returns
+    -------
+    list of str
+        Errors, warnings and failed checks; empty when the file is clean.
+    """
+    _, _, _, Usd, _, _, UsdUtils, _ = _pxr()
+    problems = _validation_errors(path)
+    checker_class = getattr(UsdUtils, "ComplianceChecker", None)
+    if checker_class is not None:  # removed from recent usd-core in favour of UsdValidation
+        checker = checker_class(arkit=False, skipARKitRootLayerCheck=False, rootPackageOnly=False,
+                                skipVariants=False, verbose=False)
+        checker.CheckCompliance(str(path))
+        problems += [str(p) for p in (*checker.GetErrors(), *checker.GetWarnings(), *checker.GetFailedChecks())]
+    return problems
+
+
+def _validation_errors(path) -> list[str]:
+    _, _, _, Usd, _, _, _, _ = _pxr()
+    try:
+        from pxr import UsdValidation
+    except ImportError:  # older usd-core: the compliance checker alone
+        return []
+    registry = UsdValidation.ValidationRegistry()
+    context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
+    errors = context.Validate(Usd.Stage.Open(str(path)))
+    return [f"{e.GetName()}: {e.GetMessage()}" for e in errors]
