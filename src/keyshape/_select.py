@@ -123,7 +123,7 @@ def spa_refined(X: np.ndarray, n_keys: int) -> np.ndarray:
     -------
     (n_keys,) int, distinct rows of ``X``
     """
-    max_swaps = 3 * n_keys
+    max_swaps = 2 * n_keys
     best = refine_swaps(X, spa(X, n_keys), max_swaps=max_swaps)
     seeds = [spread(X, n_keys), hull(X, n_keys)]
     seed = min(seeds, key=lambda rows: fit_error(X, rows))
@@ -264,7 +264,7 @@ def _addition_gain(gram: np.ndarray, keys, weights: np.ndarray) -> np.ndarray:
     return (np.minimum(grad, 0.0) ** 2).sum(axis=0) / np.maximum(np.diag(gram), 1e-300)
 
 
-def _best_exchange(gram, keys, weights, new, n_trials: int = 4, sweeps: int = 20):
+def _best_exchange(gram, keys, weights, new, n_trials: int = 4, sweeps: int = 12):
     """Best set ``keys - {k} + {new}`` over the ``n_trials`` least important ``k``.
 
     Warm-started from ``weights (n_frames, n_keys)``, only the frames whose optimum can
