@@ -177,6 +177,8 @@ def test_server_routes_and_ranges(small_take):
         assert (status, headers["Content-Range"], body) == (416, f"bytes */{len(video)}", b"")
         status, headers, _ = _get(server, "/media/animation.glb")
         assert status == 200 and headers["Content-Type"] == "model/gltf-binary"
+        assert _get(server, "/api/take", {"Host": "localhost"})[0] == 200
+        assert _get(server, "/api/take", {"Host": "rebound.example:80"})[0] == 403
         for path in ("/media/take.json", "/media/../take.json", "/static/../server.py",
                      "/static/%2e%2e/server.py", "/media/clip.mp4", "/nothing"):
             assert _get(server, path)[0] == 404, path
@@ -200,6 +202,15 @@ def test_view_command(small_take):
         out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     assert "viewer stopped" in out
+
+
+def test_view_command_falls_back_to_a_free_port(small_take, monkeypatch):
+    from keyshape.commands import view
+
+    with _Served(small_take) as busy:
+        monkeypatch.setattr(view, "DEFAULT_PORT", busy.server_address[1])
+        with view._bind(make_server, small_take, None) as server:
+            assert server.server_address[1] not in (0, busy.server_address[1])
 
 
 def test_view_command_errors(tmp_path, small_take, capsys):

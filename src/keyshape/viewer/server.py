@@ -10,7 +10,8 @@ Routes, all ``GET`` or ``HEAD``:
 ``/media/<file>``           a file of the take listed in ``take.json`` (``animation.glb``, ...)
 ==========================  =====================================================================
 
-Files are sent with ``Accept-Ranges: bytes`` and single byte ranges are honoured (``206``),
+Served on a loopback address, requests must name a loopback host (``127.0.0.1``,
+``localhost``). Files are sent with ``Accept-Ranges: bytes`` and single byte ranges are honoured (``206``),
 so the page's ``<video>`` can seek. Nothing outside the static folder, the take's listed
 files and its video is ever served.
 
@@ -43,6 +44,7 @@ _MIME = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json", ".js": "text/j
          ".m4v": "video/mp4", ".mov": "video/quicktime", ".webm": "video/webm",
          ".mkv": "video/x-matroska", ".ogv": "video/ogg"}
 _CHUNK = 1 << 16
+_LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 
 @dataclass(frozen=True)
@@ -238,6 +240,8 @@ class _Handler(BaseHTTPRequestHandler):
         pass  # the command prints the URL; per-request lines would drown it
 
     def _respond(self, *, body: bool) -> None:
+        if not self._host_allowed():
+            return self._send_bytes(b"forbidden host\n", "text/plain", body, HTTPStatus.FORBIDDEN)
         path = unquote(urlsplit(self.path).path)
         take = self.server.take
         if path == "/api/take":
@@ -246,6 +250,14 @@ class _Handler(BaseHTTPRequestHandler):
         if target is None:
             return self._send_bytes(b"not found\n", "text/plain", body, HTTPStatus.NOT_FOUND)
         self._send_file(target, body)
+
+    def _host_allowed(self) -> bool:
+        """On loopback, only requests addressed to a loopback name: a page elsewhere that
+        re-points its own name at 127.0.0.1 (DNS rebinding) cannot read the take."""
+        if self.server.server_address[0] not in _LOOPBACK:
+            return True
+        host = urlsplit(f"//{self.headers.get('Host', '')}").hostname
+        return host in _LOOPBACK
 
     @staticmethod
     def _route(path: str, take: Take) -> Path | None:
