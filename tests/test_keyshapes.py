@@ -108,3 +108,30 @@ def test_validation_messages(noisy):
         find_keyshapes(aligned, regions=perf.regions, n_keys={"upper": 2}, neutral_frame=neutral)
     with pytest.raises(InputError, match="only 191 valid frames"):
         find_keyshapes(aligned, regions=perf.regions, n_keys=500, neutral_frame=neutral)
+
+
+def test_reconstruction_error_is_zero_for_the_true_rig_and_weights():
+    perf = make_performance(n_frames=60, n_keys=4, noise=0.0, n_missing=3)
+    truth = KeyShapes(
+        neutral=perf.neutral, deltas=perf.key_deltas, names=("a", "b", "c", "d"),
+        frames=perf.extreme_frames, key_regions=perf.key_regions, regions=perf.regions,
+    )
+    aligned = perf.track.with_points(np.where(perf.track.valid[:, None, None], perf.canonical, np.nan))
+    for weights in (None, perf.true_weights):
+        errors = reconstruction_error(aligned, truth, weights=weights)
+        assert set(errors) == {"upper", "lower"} and max(errors.values()) < 1e-9
+    shifted = reconstruction_error(aligned, truth, weights=perf.true_weights + 0.1)
+    assert min(shifted.values()) > 0.1
+
+
+def test_nonnegative_fit_matches_scipy_nnls():
+    from scipy.optimize import nnls
+
+    from keyshape.metrics import nonnegative_fit
+
+    rng = np.random.default_rng(5)
+    bases, targets = rng.normal(size=(6, 40)), rng.normal(size=(12, 40))
+    fitted = nonnegative_fit(targets, bases)
+    expected = np.stack([nnls(bases.T, t)[0] for t in targets])
+    np.testing.assert_allclose(fitted, expected, atol=1e-8)
+    assert (fitted >= 0).all()

@@ -23,21 +23,26 @@ from .metrics import nonnegative_fit
 _RANK_TOL = 1e-9
 
 
-def spread(X: np.ndarray, n_keys: int) -> np.ndarray:
+def spread(X: np.ndarray, n_keys: int, *, axes: np.ndarray | None = None) -> np.ndarray:
     """Frames with the largest and smallest projection on each principal component in turn.
 
     Parameters
     ----------
     X : (n_frames, n_features) float
     n_keys : int, <= n_frames
+    axes : (rank, n_features) float, optional, keyword-only
+        The principal axes of ``X`` if already known (see ``principal_axes``).
 
     Returns
     -------
     (n_keys,) int, distinct rows of ``X``
     """
-    proj = _principal_projections(X)
+    axes = principal_axes(X) if axes is None else axes
+    proj = (X - X.mean(axis=0)) @ axes.T
     chosen: list[int] = []
     for j in range(proj.shape[1]):
+        if len(chosen) >= n_keys:
+            break
         for order in (np.argsort(-proj[:, j], kind="stable"), np.argsort(proj[:, j], kind="stable")):
             pick = next((int(i) for i in order if i not in chosen), None)
             if pick is not None and len(chosen) < n_keys:
@@ -45,7 +50,7 @@ def spread(X: np.ndarray, n_keys: int) -> np.ndarray:
     return _farthest_points(X, chosen, np.arange(len(X)), n_keys)
 
 
-def hull(X: np.ndarray, n_keys: int, *, n_components: int = 3) -> np.ndarray:
+def hull(X: np.ndarray, n_keys: int, *, n_components: int = 3, axes: np.ndarray | None = None) -> np.ndarray:
     """Vertices of the convex hull of the leading principal projections.
 
     The hull vertices are ranked greedily by spanned volume: each next vertex maximises
@@ -60,12 +65,15 @@ def hull(X: np.ndarray, n_keys: int, *, n_components: int = 3) -> np.ndarray:
     n_keys : int, <= n_frames
     n_components : int, keyword-only
         Hull dimension (reduced to the rank of ``X``).
+    axes : (rank, n_features) float, optional, keyword-only
+        The principal axes of ``X`` if already known (see ``principal_axes``).
 
     Returns
     -------
     (n_keys,) int, distinct rows of ``X``
     """
-    proj = _principal_projections(X, centre_scores=False)[:, :n_components]
+    axes = principal_axes(X) if axes is None else axes
+    proj = X @ axes[:n_components].T  # rows, not centred: the neutral stays at the origin
     chosen: list[int] = []
     remaining = np.arange(len(X))
     while len(chosen) < n_keys and remaining.size:
@@ -125,7 +133,8 @@ def spa_refined(X: np.ndarray, n_keys: int) -> np.ndarray:
     """
     max_swaps = 2 * n_keys
     best = refine_swaps(X, spa(X, n_keys), max_swaps=max_swaps)
-    seeds = [spread(X, n_keys), hull(X, n_keys)]
+    axes = principal_axes(X)
+    seeds = [spread(X, n_keys, axes=axes), hull(X, n_keys, axes=axes)]
     seed = min(seeds, key=lambda rows: fit_error(X, rows))
     if fit_error(X, best) >= fit_error(X, seed):
         best = min(best, refine_swaps(X, seed, max_swaps=max_swaps), key=lambda rows: fit_error(X, rows))
@@ -138,18 +147,16 @@ def fit_error(X: np.ndarray, rows: np.ndarray) -> float:
     return float(((X - weights @ X[rows]) ** 2).sum())
 
 
-def _principal_projections(X: np.ndarray, *, centre_scores: bool = True) -> np.ndarray:
-    """Scores ``(n_frames, rank)`` on the principal axes of ``X`` (PCA about the mean).
+def principal_axes(X: np.ndarray) -> np.ndarray:
+    """Principal axes ``(rank, n_features)`` of ``X (n_frames, n_features)`` (PCA about the mean).
 
-    With ``centre_scores=False`` the rows themselves are projected, so the neutral
-    (the origin) stays at the origin.
+    Rows are unit vectors in order of decreasing variance; axes of ~zero variance are dropped.
     """
-    centred = X - X.mean(axis=0)
     if not X.size:
-        return np.zeros((len(X), 0))
-    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+        return np.zeros((0, X.shape[1]))
+    _, sv, vt = np.linalg.svd(X - X.mean(axis=0), full_matrices=False)
     rank = int((sv > _RANK_TOL * max(sv.max(initial=0.0), 1e-300)).sum())
-    return (centred if centre_scores else X) @ vt[:rank].T
+    return vt[:rank]
 
 
 def _hull_vertices(points: np.ndarray) -> np.ndarray:
