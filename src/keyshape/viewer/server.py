@@ -10,10 +10,10 @@ Routes, all ``GET`` or ``HEAD``:
 ``/media/<file>``           a file of the take listed in ``take.json`` (``animation.glb``, ...)
 ==========================  =====================================================================
 
-Served on a loopback address, requests must name a loopback host (``127.0.0.1``,
-``localhost``). Files are sent with ``Accept-Ranges: bytes`` and single byte ranges are honoured (``206``),
-so the page's ``<video>`` can seek. Nothing outside the static folder, the take's listed
-files and its video is ever served.
+Files are sent with ``Accept-Ranges: bytes`` and single byte ranges are honoured
+(``206``), so the page's ``<video>`` can seek. Nothing outside the static folder, the
+take's listed files and its video is ever served; on a loopback address, only requests
+that name a loopback host (``127.0.0.1``, ``localhost``) are answered.
 
 References
 ----------
