@@ -118,8 +118,8 @@ class GLRenderer:
         self.vao.render()
         if self.resolve is not self.fbo:
             self.ctx.copy_framebuffer(self.resolve, self.fbo)
-        raw = self.resolve.read(components=3, alignment=1)
-        return np.frombuffer(raw, np.uint8).reshape(self.height, self.width, 3)[::-1].copy()
+        raw = self.resolve.read(components=4, alignment=1)  # RGBA reads faster than RGB on llvmpipe
+        return np.frombuffer(raw, np.uint8).reshape(self.height, self.width, 4)[::-1, :, :3].copy()
 
     def close(self) -> None:
         """Release the OpenGL context and everything in it."""

@@ -42,8 +42,8 @@ class NumpyRenderer:
         normals = face_normals(np.asarray(vertices, dtype=float), self.faces)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
         colours = lambert(np.divide(normals, length, out=np.zeros_like(normals), where=length > 0))
-        palette = np.vstack([colours, BACKGROUND])  # index -1 → background
-        return np.round(palette[face_id] * 255).astype(np.uint8)
+        palette = np.round(np.vstack([colours, BACKGROUND]) * 255).astype(np.uint8)  # -1 → background
+        return palette[face_id]
 
     def close(self) -> None:
         """Nothing to release (symmetry with the OpenGL renderer)."""
@@ -82,36 +82,69 @@ def rasterize(screen: np.ndarray, faces: np.ndarray, width: int, height: int, *,
            [ 0,  0, -1, -1],
            [ 0, -1, -1, -1]])
     """
-    keep = _drawable(screen, faces, in_front)
-    face_index = np.flatnonzero(keep)
-    boxes = _bounding_boxes(screen, faces[face_index], width, height)
+    planes, rows = _setup(screen, faces, width, height, in_front)
+    spans = _spans(planes, rows, width)
     zbuffer = np.full(width * height, np.inf)
     face_id = np.full(width * height, -1, dtype=np.int64)
-    for chunk in _chunks(boxes[:, 4]):
-        _draw_chunk(screen, faces, face_index[chunk], boxes[chunk], width, zbuffer, face_id)
+    for chunk in _chunks(spans[3] - spans[2] + 1):
+        _fill(spans[:, chunk], width, zbuffer, face_id)
     return face_id.reshape(height, width)
 
 
-def _drawable(screen, faces, in_front) -> np.ndarray:
+def _setup(screen, faces, width, height, in_front) -> tuple[np.ndarray, np.ndarray]:
+    """Planes ``(10, n_drawn)`` and row ranges ``(n_drawn, 2)`` of the drawable faces.
+
+    Rows 0–2, 3–5 and 6–8 of ``planes`` are (A, B, C) of the barycentric weights ``w_a``,
+    ``w_b`` and of the depth ``z`` as affine functions ``A x + B y + C`` of the pixel
+    position; row 9 is the face index. Row ranges are the first and last pixel row.
+    """
     ok = np.isfinite(screen).all(axis=1)
     if in_front is not None:
         ok &= in_front
-    return ok[faces].all(axis=1)
+    index = np.flatnonzero(ok[faces].all(axis=1))
+    (ax, ay, az), (bx, by, bz), (cx, cy, cz) = (screen[faces[index, i]].T for i in range(3))
+    area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    keep = np.abs(area) > 1e-12
+    index = index[keep]
+    (ax, ay, az, bx, by, bz, cx, cy, cz, area) = (v[keep] for v in (ax, ay, az, bx, by, bz, cx, cy, cz, area))
+    # edge functions (Pineda 1988), normalised: w_a(x, y) = ((c − b) × (p − b))_z / area, and so on
+    wa = np.stack([-(cy - by), cx - bx, (cy - by) * bx - (cx - bx) * by]) / area
+    wb = np.stack([-(ay - cy), ax - cx, (ay - cy) * cx - (ax - cx) * cy]) / area
+    wc = -wa - wb
+    wc[2] += 1.0  # w_c = 1 − w_a − w_b
+    z = wa * az + wb * bz + wc * cz  # depth is affine in screen space
+    ys = np.stack([ay, by, cy], axis=1)
+    first = np.maximum(np.ceil(ys.min(axis=1) - 0.5), 0)
+    last = np.minimum(np.floor(ys.max(axis=1) - 0.5), height - 1)
+    return np.vstack([wa, wb, z, index[None].astype(float)]), np.stack([first, last], axis=1).astype(np.int64)
 
 
-def _bounding_boxes(screen, faces, width, height) -> np.ndarray:
-    """(n_faces, 5) int: x0, y0, box width, box height, pixel count (0 when off screen)."""
-    xy = screen[faces][:, :, :2]  # (n_faces, 3 corners, 2)
-    lo = np.maximum(np.ceil(xy.min(axis=1) - 0.5), 0)
-    hi = np.minimum(np.floor(xy.max(axis=1) - 0.5), [width - 1, height - 1])
-    size = np.maximum(hi - lo + 1, 0).astype(np.int64)
-    lo = lo.astype(np.int64)
-    return np.column_stack([lo, size, size[:, 0] * size[:, 1]])
+def _spans(planes: np.ndarray, rows: np.ndarray, width: int) -> np.ndarray:
+    """(6, n_spans): row, face, first and last pixel column, z at x = 0 of the row, dz/dx.
+
+    Each face's covered pixels on each row form one run: the intersection of the three
+    half-lines ``w_e(x, y) >= 0`` (``w_c = 1 − w_a − w_b``).
+    """
+    counts = np.maximum(rows[:, 1] - rows[:, 0] + 1, 0)
+    owner = np.repeat(np.arange(len(rows)), counts)
+    row = rows[owner, 0] + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    p, y = planes[:, owner], row + 0.5
+    lo, hi = np.zeros(len(row)), np.full(len(row), float(width))
+    edges = ((p[0], p[1] * y + p[2]), (p[3], p[4] * y + p[5]),
+             (-p[0] - p[3], 1.0 - (p[1] + p[4]) * y - p[2] - p[5]))
+    for slope, offset in edges:  # slope·x + offset >= 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = -offset / slope
+        lo = np.where(slope > 0, np.maximum(lo, bound), lo)
+        hi = np.where(slope < 0, np.minimum(hi, bound), hi)
+        hi = np.where((slope == 0) & (offset < 0), -1.0, hi)
+    first, last = np.ceil(lo - 0.5), np.minimum(np.floor(hi - 0.5), width - 1)
+    return np.stack([row, p[9], first, last, p[7] * y + p[8], p[6]])
 
 
 def _chunks(counts: np.ndarray):
-    """Slices of consecutive faces whose pixel counts add up to about ``_CHUNK_PIXELS``."""
-    total = np.cumsum(counts)
+    """Slices of consecutive spans whose pixel counts add up to about ``_CHUNK_PIXELS``."""
+    total = np.cumsum(np.maximum(counts, 0))
     start = 0
     while start < len(counts):
         done = total[start - 1] if start else 0
@@ -120,34 +153,16 @@ def _chunks(counts: np.ndarray):
         start = end
 
 
-def _draw_chunk(screen, faces, face_index, boxes, width, zbuffer, face_id) -> None:
-    counts = boxes[:, 4]
-    owner = np.repeat(np.arange(len(boxes)), counts)  # local face of each candidate pixel
-    offset = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    px = boxes[owner, 0] + offset % np.maximum(boxes[owner, 2], 1)
-    py = boxes[owner, 1] + offset // np.maximum(boxes[owner, 2], 1)
-    corners = screen[faces[face_index]][owner]  # (n_candidates, 3, 3)
-    depth, inside = _barycentric_depth(corners, px + 0.5, py + 0.5)
-    pixel = (py * width + px)[inside]
-    depth, owner = depth[inside], face_index[owner[inside]]
-    order = np.lexsort((depth, pixel))
-    pixel, first = np.unique(pixel[order], return_index=True)
-    depth, owner = depth[order][first], owner[order][first]
-    nearer = depth < zbuffer[pixel]
-    zbuffer[pixel[nearer]] = depth[nearer]
-    face_id[pixel[nearer]] = owner[nearer]
-
-
-def _barycentric_depth(corners, x, y) -> tuple[np.ndarray, np.ndarray]:
-    """Interpolated depth and the inside test of points ``(x, y)`` in their triangles."""
-    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
-    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    # edge functions: w_a is the signed area opposite a, and so on
-    w_a = (c[:, 0] - b[:, 0]) * (y - b[:, 1]) - (c[:, 1] - b[:, 1]) * (x - b[:, 0])
-    w_b = (a[:, 0] - c[:, 0]) * (y - c[:, 1]) - (a[:, 1] - c[:, 1]) * (x - c[:, 0])
-    w_c = (b[:, 0] - a[:, 0]) * (y - a[:, 1]) - (b[:, 1] - a[:, 1]) * (x - a[:, 0])
-    safe = np.where(np.abs(area) > 1e-12, area, 1.0)
-    w_a, w_b, w_c = w_a / safe, w_b / safe, w_c / safe
-    depth = w_a * a[:, 2] + w_b * b[:, 2] + w_c * c[:, 2]
-    inside = (np.abs(area) > 1e-12) & (w_a >= 0) & (w_b >= 0) & (w_c >= 0) & (np.abs(depth) <= 1)
-    return depth, inside
+def _fill(spans: np.ndarray, width: int, zbuffer: np.ndarray, face_id: np.ndarray) -> None:
+    """Write the pixels of some spans into the z-buffer (nearest wins)."""
+    row, face, first, last, z_row, slope = spans
+    counts = np.maximum(last - first + 1, 0).astype(np.int64)
+    owner = np.repeat(np.arange(len(counts)), counts)
+    x = first[owner] + (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
+    z = z_row[owner] + slope[owner] * (x + 0.5)
+    pixel = row[owner].astype(np.int64) * width + x.astype(np.int64)
+    near = np.abs(z) <= 1
+    pixel, z, owner = pixel[near], z[near], owner[near]
+    np.minimum.at(zbuffer, pixel, z)
+    won = z <= zbuffer[pixel]
+    face_id[pixel[won]] = face[owner[won]].astype(np.int64)

@@ -1,0 +1,84 @@
+"""Pictures: contact sheet, weight curves with fit error, error vs K."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from keyshape import plots
+from keyshape.align import align
+from keyshape.exceptions import InputError
+from keyshape.report import fit_quality
+
+from test_render import synthetic_take
+
+
+@pytest.fixture(scope="module")
+def take():
+    perf, keys, weights, poses, rig = synthetic_take(n_frames=60, n_missing=4)
+    aligned, _ = align(perf.track, reference=keys.neutral, stable=perf.stable)
+    return perf, keys, weights, aligned
+
+
+def read_png(path) -> np.ndarray:
+    with Image.open(path) as image:
+        assert image.format == "PNG"
+        return np.asarray(image.convert("RGB"))
+
+
+def test_contact_sheet_shows_every_key_and_the_neutral(take, tmp_path):
+    perf, keys, weights, _ = take
+    images = {int(f): np.full((480, 640, 3), 90, np.uint8) for f in [keys.neutral_frame, *keys.frames]}
+    path = plots.contact_sheet(keys, perf.track, images, tmp_path / "sheet.png", columns=3)
+    picture = read_png(path)
+    # 1 neutral + 4 keys in 3 columns: 2 rows of 2.3 x 2.55 inch tiles at 100 dpi
+    assert picture.shape == (510, 690, 3)
+    # the grey video frames are there, and so are the two region colours
+    assert (np.abs(picture.astype(int) - 90).sum(axis=2) == 0).mean() > 0.2
+    from keyshape.render.draw import REGION_COLOURS
+
+    for colour in REGION_COLOURS[:2]:
+        assert (np.abs(picture.astype(int) - colour).sum(axis=2) < 40).sum() > 10
+
+
+def test_contact_sheet_without_video_draws_the_landmarks(take, tmp_path):
+    perf, keys, _, _ = take
+    picture = read_png(plots.contact_sheet(keys, perf.track, {}, tmp_path / "sheet.png"))
+    assert picture.shape[1] == 5 * 230  # all five tiles in one row of at most 6
+    dark = (np.abs(picture.astype(int) - (0x20, 0x22, 0x26)).sum(axis=2) < 6).mean()
+    assert dark > 0.3  # the tiles' dark background
+
+
+def test_weight_curves_png(take, tmp_path):
+    perf, keys, weights, aligned = take
+    fit = fit_quality(aligned, keys, weights)
+    picture = read_png(plots.weight_curves(weights, keys, fit, tmp_path / "w.png"))
+    assert picture.shape == (2 * 200 + 260, 1200, 3)
+    assert picture.std() > 10
+    # the 4 gaps (frames without a face) are shaded grey (#9a9a9a at 35 % over white) in all 3 panels
+    grey = (np.abs(picture.astype(int) - 220).sum(axis=2) < 6).sum()
+    assert grey > 4 * 3 * 100
+
+
+def test_runs():
+    assert plots._runs(np.array([1, 1, 0, 0, 1, 0, 1], bool)) == [(0, 2), (4, 5), (6, 7)]
+    assert plots._runs(np.zeros(3, bool)) == []
+
+
+def test_error_vs_k_accepts_both_table_forms(tmp_path):
+    ks = np.arange(1, 9)
+    table = {"spa": {"upper": (ks, 4 / ks), "lower": (ks, 6 / ks)},
+             "hull": {"upper": (ks, 5 / ks), "lower": (ks, 7 / ks)}}
+    picture = read_png(plots.error_vs_k(table, tmp_path / "k.png", chosen={"upper": 4, "lower": 4}))
+    assert picture.shape == (340, 2 * 420, 3)
+    single = read_png(plots.error_vs_k({"spa": (ks, 4 / ks)}, tmp_path / "k1.png"))
+    assert single.shape == (340, 420, 3)
+
+
+def test_error_vs_k_rejects_bad_tables(tmp_path):
+    with pytest.raises(InputError, match="spa/upper needs as many errors as ks"):
+        plots.error_vs_k({"spa": {"upper": ([1, 2, 3], [1.0, 2.0])}}, tmp_path / "k.png")
+    with pytest.raises(InputError, match="empty"):
+        plots.error_vs_k({}, tmp_path / "k.png")
+    assert not list(tmp_path.iterdir())

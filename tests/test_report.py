@@ -1,0 +1,193 @@
+"""Fit quality, the take numbers and the self-contained report.html."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+
+import numpy as np
+import pytest
+
+from keyshape.containers import KeyShapes, Track, Weights
+from keyshape.datasets import make_performance
+from keyshape.report import fit_quality, gap_runs, take_numbers, write_take_extras
+
+from test_render import decode, make_take_folder
+
+URL_ATTRIBUTE = re.compile(r"""\b(?:src|href)\s*=\s*["']?\s*([^"'\s>]+)""", re.IGNORECASE)
+
+
+def test_gap_runs():
+    assert gap_runs(np.ones(5, bool)) == (0, 0)
+    assert gap_runs(np.array([0, 0, 1, 0, 1, 0, 0, 0], bool)) == (3, 3)
+    assert gap_runs(np.zeros(4, bool)) == (1, 4)
+
+
+def planted():
+    """Noiseless take whose keys are the true key shapes, in canonical coordinates."""
+    perf = make_performance(n_frames=80, n_keys=4, noise=0.0, rotation_deg=0.0, random_state=3)
+    keys = KeyShapes(perf.neutral, perf.key_deltas, ("u0", "l0", "u1", "l1"), perf.extreme_frames,
+                     perf.key_regions, perf.regions, neutral_frame=perf.neutral_frame)
+    canonical = Track(perf.canonical, perf.track.fps)
+    return perf, keys, canonical
+
+
+def test_fit_quality_is_zero_for_the_true_weights():
+    perf, keys, canonical = planted()
+    fit = fit_quality(canonical, keys, Weights(perf.true_weights, keys.names, 30.0))
+    for region in keys.regions:
+        assert np.nanmax(fit.error[region]) < 1e-9 and not fit.outside[region].any()
+    assert fit.unit == "% face size" and fit.scale > 0
+
+
+def test_fit_quality_error_is_rms_in_percent_of_the_scale():
+    perf, keys, canonical = planted()
+    zero = Weights(np.zeros_like(perf.true_weights), keys.names, 30.0)
+    fit = fit_quality(canonical, keys, zero)
+    f, lm = 17, keys.regions["upper"]
+    moved = canonical.points[f, lm] - keys.neutral[lm]
+    expected = np.sqrt((moved**2).sum(axis=1).mean()) / fit.scale * 100
+    assert fit.error["upper"][f] == pytest.approx(expected)
+    # zero weights are a valid non-negative blend: only the part the span reaches with w >= 0 costs nothing
+    assert (fit.excess["upper"] <= fit.error["upper"] + 1e-12).all()
+
+
+def test_frames_outside_the_hull_are_those_needing_negative_weights():
+    perf, keys, canonical = planted()
+    weights = perf.true_weights.copy()
+    points = canonical.points.copy()
+    k, frame = 0, 5  # key u0 (upper), pushed the other way: outside the cone of the upper keys
+    points[frame] = keys.neutral - 1.0 * keys.deltas[k]
+    weights[frame] = 0.0  # the best non-negative blend of an opposite move is (close to) nothing
+    fit = fit_quality(canonical.with_points(points), keys, Weights(weights, keys.names, 30.0), tolerance=1.0)
+    assert fit.outside["upper"][frame] and fit.outside["upper"].sum() == 1
+    assert not fit.outside["lower"].any()
+    assert fit.excess["upper"][frame] == pytest.approx(fit.error["upper"][frame], rel=1e-6)
+
+
+def test_fit_quality_nan_frames_and_weight_order():
+    perf, keys, canonical = planted()
+    points = canonical.points.copy()
+    points[3] = np.nan
+    shuffled = Weights(perf.true_weights[:, ::-1], keys.names[::-1], 30.0)
+    fit = fit_quality(canonical.with_points(points), keys, shuffled)
+    assert np.isnan(fit.error["upper"][3]) and not fit.outside["upper"][3]
+    assert np.nanmax(fit.error["lower"]) < 1e-9
+    with pytest.raises(ValueError, match="missing"):
+        fit_quality(canonical, keys, Weights(perf.true_weights[:, :2], keys.names[:2], 30.0))
+
+
+def test_take_numbers():
+    perf = make_performance(n_frames=50, n_keys=2, noise=0.0, n_missing=5, random_state=1)
+    keys = KeyShapes(perf.neutral, perf.key_deltas, ("u0", "l0"), perf.extreme_frames, perf.key_regions,
+                     perf.regions, neutral_frame=perf.neutral_frame)
+    points = perf.canonical.copy()
+    points[~perf.track.valid] = np.nan
+    fit = fit_quality(Track(points, 30.0), keys, Weights(perf.true_weights, keys.names, 30.0))
+    numbers = take_numbers(perf.track, keys, fit)
+    valid = perf.track.valid
+    assert numbers["frames"] == 50 and numbers["frames_with_face"] == 45
+    assert numbers["detection_rate"] == 90.0
+    runs = "".join("x" if v else "." for v in valid).split("x")
+    assert numbers["gaps"] == sum(1 for r in runs if r) and numbers["longest_gap_frames"] == max(map(len, runs))
+    assert numbers["regions"]["upper"]["keys"] == 1 and numbers["regions"]["upper"]["rms_error"] == 0.0
+    json.dumps(numbers)  # JSON-ready
+
+
+# --------------------------------------------------------------------------- report.html
+
+
+@pytest.fixture(scope="module")
+def extras(tmp_path_factory):
+    folder = make_take_folder(tmp_path_factory.mktemp("take"), n_frames=40, n_missing=4)
+    ks = [1, 2, 3]
+    (folder / "error_vs_k.json").write_text(json.dumps(
+        {"spa": {"upper": {"ks": ks, "errors": [3.0, 2.0, 1.0]}, "lower": {"ks": ks, "errors": [4, 3, 2]}}}))
+    return folder, write_take_extras(folder, progress=False)
+
+
+def test_take_extras_writes_every_file(extras):
+    folder, result = extras
+    for name in ("report.html", "preview.mp4", "keyshapes.png", "weights.png", "error_vs_k.png"):
+        assert (folder / name).stat().st_size > 1000, name
+    assert set(result.pictures) == {"keyshapes", "weights", "error_vs_k"}
+    frames, rate, count = decode(result.preview)
+    assert count == len(frames) == 40 and rate == pytest.approx(25.0)
+    assert not list(folder.glob(".*part*"))  # no temporary files left behind
+
+
+def test_report_is_self_contained(extras):
+    folder, result = extras
+    text = result.report.read_text(encoding="utf-8")
+    targets = URL_ATTRIBUTE.findall(text)
+    assert targets, "the report should reference its pictures and video"
+    assert not [t for t in targets if re.match(r"(?i)(https?:)?//", t)]
+    assert not re.search(r"(?i)https?://", text.replace("http://www.w3.org", ""))
+    images = re.findall(r'<img[^>]+src="data:image/png;base64,([^"]+)"', text)
+    assert len(images) == 3
+    for data in images:
+        assert base64.b64decode(data)[:8] == b"\x89PNG\r\n\x1a\n"
+    videos = re.findall(r'<video[^>]+src="([^"]+)"', text)
+    assert videos == ["preview.mp4"] and (folder / videos[0]).is_file()
+    assert "<link" not in text and "@import" not in text and "<script src" not in text
+
+
+def test_report_numbers_are_right(extras):
+    folder, result = extras
+    from keyshape.io.keys_json import load_keys
+    from keyshape.io.track import load_track
+
+    track, keys = load_track(folder / "track.npz"), load_keys(folder / "keys.json")
+    text = result.report.read_text(encoding="utf-8")
+    embedded = json.loads(re.search(r'<script type="application/json" id="numbers">(.*?)</script>', text,
+                                    re.S).group(1))
+    assert embedded == result.numbers
+    assert embedded["frames"] == track.n_frames == 40
+    assert embedded["frames_with_face"] == int(track.valid.sum()) == 36
+    assert embedded["detection_rate"] == 90.0
+    assert embedded["gaps"] == gap_runs(track.valid)[0] and embedded["longest_gap_frames"] == gap_runs(track.valid)[1]
+    assert {r: v["keys"] for r, v in embedded["regions"].items()} == {"upper": 2, "lower": 2}
+    assert embedded["neutral_frame"] == keys.neutral_frame
+    cell = lambda key: re.search(rf'data-key="{key}">([^<]*)<', text).group(1)  # noqa: E731
+    assert cell("frames") == "40" and cell("detection rate") == "90.00 %"
+    for region, numbers in embedded["regions"].items():
+        row = re.search(rf'<tr data-region="{region}">(.*?)</tr>', text).group(1)
+        assert f"{numbers['rms_error']:.2f}" in row
+    for name in keys.names:
+        assert f"<td>{name}</td>" in text
+
+
+def test_report_verb_without_preview(tmp_path):
+    from keyshape.cli import main
+
+    folder = make_take_folder(tmp_path / "take", n_frames=20, n_missing=0, with_video=False)
+    assert main(["report", str(folder), "--no-preview", "-q"]) == 0
+    text = (folder / "report.html").read_text()
+    assert "<video" not in text and "was not found" in text
+    assert not (folder / "preview.mp4").exists()
+    assert main(["report", str(tmp_path / "missing"), "-q"]) == 1
+
+
+@pytest.mark.slow
+def test_demo_take_end_to_end(tmp_path):
+    """The real clip: `keyshape demo`, then the extras; the character moves with the expression."""
+    from keyshape.cli import main
+    from keyshape.io.keys_json import load_keys
+    from keyshape.io.weights_csv import load_weights_csv
+
+    assert main(["demo", "-o", str(tmp_path), "-q"]) == 0
+    result = write_take_extras(tmp_path, progress=False)
+    numbers = result.numbers
+    assert numbers["frames"] == 472 and numbers["detection_rate"] >= 95
+    assert {r: v["keys"] for r, v in numbers["regions"].items()} == {"upper": 8, "lower": 8}
+    assert all(v["rms_error"] < 5 for v in numbers["regions"].values())  # % inter-ocular distance
+    frames, rate, count = decode(result.preview)
+    assert count == len(frames) == 472 and rate == pytest.approx(24000 / 1001, abs=1e-3)
+    keys, weights = load_keys(tmp_path / "keys.json"), load_weights_csv(tmp_path / "weights.csv")
+    lower = keys.keys_of("lower")
+    strong = int(np.nanargmax(np.nansum(weights.values[:, lower], axis=1)))
+    height = frames[0].shape[0] - 96  # above the weight strip
+    panel = slice(frames[0].shape[1] - height, None)
+    a, b = frames[keys.neutral_frame][:height, panel], frames[strong][:height, panel]
+    assert (np.abs(a.astype(int) - b).sum(axis=2) > 30).mean() > 0.01
