@@ -315,3 +315,108 @@ def continuous_hemisphere(quats: np.ndarray) -> np.ndarray:
         if np.dot(out[i], out[i - 1]) < 0:
             out[i] = -out[i]
     return out
+
+
+# --------------------------------------------------------------------------- pruning
+
+# Extensions that reference no accessors or buffer views outside the core fields we reindex.
+_SAFE_EXTENSIONS = re.compile(r"^(KHR_materials_\w+|KHR_texture_transform|KHR_lights_punctual|"
+                              r"KHR_mesh_quantization|KHR_materials_variants|KHR_texture_basisu|"
+                              r"EXT_texture_webp|KHR_animation_pointer)$")
+
+
+def prune(document: pygltflib.GLTF2) -> None:
+    """Drop accessors and buffer views nothing refers to (replaced targets, dropped channels).
+
+    Only when every extension the file uses is known not to refer to accessors or views
+    itself; otherwise the file is left as it is (unused data is harmless).
+    """
+    if any(not _SAFE_EXTENSIONS.match(e) for e in document.extensionsUsed or []):
+        return
+    accessors = _reindex_accessors(document)
+    views = _reindex_views(document)
+    if accessors or views:
+        _rebuild_blob(document, views)
+
+
+def _accessor_slots(document):
+    """(object, attribute or key, is_dict) for every core reference to an accessor."""
+    for mesh in document.meshes:
+        for primitive in mesh.primitives:
+            yield from ((primitive.attributes, k, False) for k, v in vars(primitive.attributes).items()
+                        if isinstance(v, int))
+            if primitive.indices is not None:
+                yield primitive, "indices", False
+            for target in primitive.targets or []:
+                yield from ((target, k, True) for k, v in target.items() if isinstance(v, int))
+    for skin in document.skins:
+        if skin.inverseBindMatrices is not None:
+            yield skin, "inverseBindMatrices", False
+    for animation in document.animations:
+        for sampler in animation.samplers:
+            yield sampler, "input", False
+            yield sampler, "output", False
+
+
+def _get(slot):
+    owner, key, is_dict = slot
+    return owner[key] if is_dict else getattr(owner, key)
+
+
+def _set(slot, value) -> None:
+    owner, key, is_dict = slot
+    if is_dict:
+        owner[key] = value
+    else:
+        setattr(owner, key, value)
+
+
+def _reindex_accessors(document) -> bool:
+    slots = list(_accessor_slots(document))
+    used = sorted({_get(s) for s in slots})
+    if len(used) == len(document.accessors):
+        return False
+    new = {old: k for k, old in enumerate(used)}
+    for slot in slots:
+        _set(slot, new[_get(slot)])
+    document.accessors = [document.accessors[i] for i in used]
+    return True
+
+
+def _view_slots(document):
+    for accessor in document.accessors:
+        if accessor.bufferView is not None:
+            yield accessor, "bufferView", False
+        if accessor.sparse is not None:
+            yield accessor.sparse.indices, "bufferView", False
+            yield accessor.sparse.values, "bufferView", False
+    for image in document.images:
+        if image.bufferView is not None:
+            yield image, "bufferView", False
+
+
+def _reindex_views(document) -> dict[int, int] | None:
+    slots = list(_view_slots(document))
+    used = sorted({_get(s) for s in slots})
+    if len(used) == len(document.bufferViews):
+        return None
+    new = {old: k for k, old in enumerate(used)}
+    for slot in slots:
+        _set(slot, new[_get(slot)])
+    kept = [document.bufferViews[i] for i in used]
+    document.bufferViews = kept
+    return new
+
+
+def _rebuild_blob(document, views) -> None:
+    """Copy the kept views' bytes into a fresh blob (4-byte aligned) and fix their offsets."""
+    old = document.binary_blob() or b""
+    chunks, length = [], 0
+    for view in document.bufferViews:
+        data = old[view.byteOffset or 0:(view.byteOffset or 0) + view.byteLength]
+        view.byteOffset, view.buffer = length, 0
+        chunks.append(_padded(data))
+        length += len(chunks[-1])
+    blob = b"".join(chunks)
+    document.buffers = [pygltflib.Buffer(byteLength=len(blob))]
+    document.set_binary_blob(blob)

@@ -65,7 +65,7 @@ def format_of(path, format: str | Format | None = None) -> Format:
 
 
 def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | None = None,
-           format: str | Format | None = None, source=None) -> Path:
+           format: str | Format | None = None, source=None, head: str | None = None) -> Path:
     """Write ``animation`` to ``path`` in the chosen format, atomically.
 
     Parameters
@@ -84,6 +84,9 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     source : str or Path, optional, keyword-only
         The original ``.glb``/``.gltf`` the rig came from: ``glb`` output keeps that file whole
         and adds the animation.
+    head : str, optional, keyword-only
+        The node of ``source`` to turn with the head (default: found by name; see
+        :func:`keyshape.io.gltf.animate_gltf`).
 
     Returns
     -------
@@ -102,7 +105,7 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
         from .gltf import animate_gltf, write_glb
 
         if glb_source:
-            return animate_gltf(source, animation, path, poses=poses)
+            return animate_gltf(source, animation, path, poses=poses, head=head)
         return write_glb(path, rig, animation, poses=poses)
     if chosen is Format.USD:
         from .usd import write_usd

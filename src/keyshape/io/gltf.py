@@ -284,6 +284,7 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     if weights.n_frames:
         document.animations.append(_performance(document, blob, meshes, weights, poses, head, source))
     blob.finish()
+    edit.prune(document)
     return _save(path, document)
 
 
@@ -403,6 +404,7 @@ def write_gltf_targets(source, path, rig: Rig, *, meshes=None) -> Path:
     edit.drop_weight_channels(document, edit.morph_nodes(document, chosen))
     edit.root_skinned_meshes(document)
     blob.finish()
+    edit.prune(document)
     return _save(path, document)
 
 
