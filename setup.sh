@@ -5,8 +5,9 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
-# System libraries (OpenCV/MediaPipe need libGL and GLib); Node.js + npm for the validator.
-APT_PACKAGES=(libgl1 libglib2.0-0)
+# System libraries: OpenCV/MediaPipe need libGL and GLib; offscreen rendering uses EGL on Mesa
+# (llvmpipe); the browser tests drive Debian's Chromium; Node.js + npm run the glTF validator.
+APT_PACKAGES=(libgl1 libglib2.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri chromium)
 command -v node >/dev/null || APT_PACKAGES+=(nodejs)
 command -v npm >/dev/null || APT_PACKAGES+=(npm)
 missing=()
