@@ -64,8 +64,8 @@ def test_spread_finds_extremes_along_the_components():
     assert sorted(keys.frames.tolist()) == sorted(perf.extreme_frames.tolist())
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("n_keys", [4, 6, 10])
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("n_keys", [4, 10])
 def test_spa_error_is_no_worse_than_the_papers_methods(seed, n_keys):
     perf, aligned, neutral = _aligned(n_frames=200, n_keys=12, noise=0.5, random_state=seed)
     errors = {}
@@ -135,3 +135,24 @@ def test_nonnegative_fit_matches_scipy_nnls():
     expected = np.stack([nnls(bases.T, t)[0] for t in targets])
     np.testing.assert_allclose(fitted, expected, atol=1e-8)
     assert (fitted >= 0).all()
+
+
+@pytest.mark.slow
+def test_spa_beats_the_papers_methods_on_real_footage(real_track):
+    """Issue 3: on the real clip, spa has the lowest error at every K >= 4."""
+    from keyshape.align import choose_neutral
+    from keyshape.schemes import resolve_regions, stable_points
+
+    regions = resolve_regions("upper-lower", real_track.n_landmarks)
+    stable = stable_points(real_track.n_landmarks)
+    neutral = choose_neutral(real_track, stable=stable, regions=regions)
+    aligned, _ = align(real_track, reference=neutral, stable=stable)
+    for n_keys in (4, 8, 16, 30):
+        errors = {
+            method: reconstruction_error(
+                aligned, find_keyshapes(aligned, regions=regions, n_keys=n_keys, method=method, neutral_frame=neutral)
+            )
+            for method in METHODS
+        }
+        for region in regions:
+            assert errors["spa"][region] < min(errors["spread"][region], errors["hull"][region]), (n_keys, errors)

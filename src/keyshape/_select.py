@@ -135,9 +135,11 @@ def spa_refined(X: np.ndarray, n_keys: int) -> np.ndarray:
     best = refine_swaps(X, spa(X, n_keys), max_swaps=max_swaps)
     axes = principal_axes(X)
     seeds = [spread(X, n_keys, axes=axes), hull(X, n_keys, axes=axes)]
-    seed = min(seeds, key=lambda rows: fit_error(X, rows))
-    if fit_error(X, best) >= fit_error(X, seed):
-        best = min(best, refine_swaps(X, seed, max_swaps=max_swaps), key=lambda rows: fit_error(X, rows))
+    seed_errors = [fit_error(X, rows) for rows in seeds]
+    seed = seeds[int(np.argmin(seed_errors))]
+    if fit_error(X, best) >= min(seed_errors):
+        again = refine_swaps(X, seed, max_swaps=max_swaps)
+        best = again if fit_error(X, again) < fit_error(X, best) else best
     return best
 
 
@@ -220,12 +222,13 @@ def refine_swaps(X: np.ndarray, chosen: np.ndarray, *, max_swaps: int, patience:
     """Improve a key set by exchanges that lower the non-negative fitting error.
 
     The objective is ``E(S) = Σ_f min_{w >= 0} |x_f - Σ_{k in S} w_k x_k|²`` over all rows.
-    Each step proposes the row whose addition as a key would lower ``E`` most to first
-    order (see ``_addition_gain``), fits the keys plus that row, and tries dropping each of the least important
-    keys (smallest ``G_kk Σ_f w_fk²``, the cost of zeroing ``w_k``); the best exchange is
-    kept if it lowers ``E``. A proposal that fails is not proposed again; the search stops
-    after ``patience`` failures in a row or ``max_swaps`` exchanges. All fits work on the
-    Gram matrix ``H = X Xᵀ`` with batched coordinate descent.
+    Each step proposes a row to add, alternately the one of largest first-order gain
+    (``_addition_gain``) and the worst-explained one; fits the keys plus that row; and
+    tries dropping each of the least important keys (smallest ``G_kk Σ_f w_fk²``, the
+    cost of zeroing ``w_k``). The best exchange is kept if it lowers ``E``. A proposal
+    that fails is not proposed again until the next exchange; the search stops after
+    ``patience`` failures in a row or ``max_swaps`` exchanges. All fits work on the Gram
+    matrix ``H = X Xᵀ`` with batched coordinate descent.
 
     Parameters
     ----------
