@@ -129,6 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     _add_key_options(p)
+    p.add_argument("--no-preview", action="store_true",
+                   help="skip the side-by-side preview video (pictures and report are still written)")
 
     p = sub.add_parser("demo", parents=[common], formatter_class=_formatter,
                        help="run the whole path on the embedded real clip",
@@ -153,6 +155,11 @@ def _add_module(sub, common, module) -> None:
     p.set_defaults(handler=module.run)
 
 
+def _progress(args) -> bool:
+    """Progress bars only for a person watching a terminal."""
+    return not args.quiet and sys.stderr.isatty()
+
+
 def _say(args, text: str) -> None:
     if not args.quiet:
         print(text, flush=True)
@@ -161,7 +168,7 @@ def _say(args, text: str) -> None:
 def cmd_track(args) -> None:
     from .capture import track_to_file
 
-    summary = track_to_file(args.video, args.output, progress=not args.quiet, **_capture_kwargs(args))
+    summary = track_to_file(args.video, args.output, progress=_progress(args), **_capture_kwargs(args))
     n, found = summary["n_frames"], summary["n_faces"]
     _say(args, f"{args.output}: {n} frames, face in {found} ({100 * found / n:.1f} %), "
                f"{summary['fps']:g} fps")
@@ -210,11 +217,12 @@ def _run(args, video: Path) -> None:
     from .io.track import save_track
     from .io.weights_csv import save_weights_csv
     from .pipeline import default_character, discover_keys, solve_take
+    from .report import write_take_extras
     from .retarget import Mapping, retarget
     from .rig import load_rig
 
     start = time.perf_counter()
-    track = track_video(video, progress=not args.quiet, **_capture_kwargs(args))
+    track = track_video(video, progress=_progress(args), **_capture_kwargs(args))
     keys = discover_keys(track, regions=args.regions, n_keys=args.count, method=args.method,
                          neutral=args.neutral, take=video.name)
     solved = solve_take(track, keys)
@@ -226,11 +234,14 @@ def _run(args, video: Path) -> None:
     save_weights_csv(solved.weights, out / "weights.csv")
     write_glb(out / "animation.glb", rig, anim, poses=solved.poses)
     save_take_info(out / "take.json", video=video, track=track, keys=keys)
+    extras = write_take_extras(out, progress=_progress(args), preview=not args.no_preview)
     _say(args, f"{video.name}: {track.n_frames} frames, face in {100 * track.valid.mean():.1f} %, "
                f"neutral frame {keys.neutral_frame}")
     _say(args, f"keys: {_describe_keys(keys)}")
-    _say(args, f"wrote {out}/track.npz, keys.json, weights.csv, animation.glb, take.json "
+    shown = ", ".join(p.name for p in [extras.preview, *extras.pictures.values(), extras.report] if p)
+    _say(args, f"wrote {out}/track.npz, keys.json, weights.csv, animation.glb, take.json, {shown} "
                f"in {time.perf_counter() - start:.1f} s")
+    _say(args, f"see it: open {extras.report} or run `keyshape view {out}`")
 
 
 def cmd_run(args) -> None:
@@ -239,7 +250,7 @@ def cmd_run(args) -> None:
 
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
-    args.start, args.end, args.fps, args.face = 0, None, None, 0
+    args.start, args.end, args.fps, args.face, args.no_preview = 0, None, None, 0, False
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))
     _run(args, clip)
 
