@@ -73,18 +73,42 @@ def draw_landmarks(image: np.ndarray, points: np.ndarray, colours: np.ndarray, *
     colours : (n_landmarks, 3) uint8
     edges : (n_edges, 2) int, optional, keyword-only
         Contour segments, drawn in the colour of their first landmark.
-    radius : float, keyword-only
+    radius : float or (n_landmarks,) float, keyword-only
+        Dot radius in pixels.
     """
-    image_mod, image_draw, _ = _pil()
-    canvas = image_mod.fromarray(np.ascontiguousarray(image))
     if not np.isfinite(points).all():
-        return np.asarray(canvas)
-    pen = image_draw.Draw(canvas)
-    for i, j in ([] if edges is None else edges):
-        pen.line([tuple(points[i]), tuple(points[j])], fill=tuple(int(c) for c in colours[i]), width=1)
-    for (x, y), colour in zip(points, colours.tolist()):
-        pen.ellipse([x - radius, y - radius, x + radius, y + radius], fill=tuple(colour))
-    return np.asarray(canvas)
+        return image.copy()
+    out = image
+    if edges is not None and len(edges):
+        image_mod, image_draw, _ = _pil()
+        canvas = image_mod.fromarray(np.ascontiguousarray(image))
+        pen = image_draw.Draw(canvas)
+        for (i, j), colour in zip(edges.tolist(), colours[edges[:, 0]].tolist()):
+            pen.line([tuple(points[i]), tuple(points[j])], fill=tuple(colour), width=1)
+        out = np.asarray(canvas)
+    out = out.copy() if out is image else np.array(out)
+    radii = np.broadcast_to(np.asarray(radius, dtype=float), (len(points),))
+    for r in np.unique(radii):
+        _dots(out, points[radii == r], colours[radii == r], float(r))
+    return out
+
+
+def _dots(image: np.ndarray, points: np.ndarray, colours: np.ndarray, radius: float) -> np.ndarray:
+    """Filled discs stamped at ``points`` (in place; returns ``image``)."""
+    offsets = _disc(radius)  # (n_offsets, 2) as (dx, dy)
+    xy = np.round(points).astype(np.int64)[:, None, :] + offsets[None]  # (n_points, n_offsets, 2)
+    inside = ((xy >= 0) & (xy < (image.shape[1], image.shape[0]))).all(axis=2)
+    which = np.broadcast_to(np.arange(len(points))[:, None], inside.shape)[inside]
+    image[xy[inside][:, 1], xy[inside][:, 0]] = colours[which]
+    return image
+
+
+@cache
+def _disc(radius: float) -> np.ndarray:
+    r = int(np.ceil(radius))
+    dy, dx = np.mgrid[-r:r + 1, -r:r + 1]
+    keep = dx**2 + dy**2 <= radius**2 + 0.25
+    return np.stack([dx[keep], dy[keep]], axis=1)
 
 
 def caption(image: np.ndarray, text: str, *, xy=(8, 6), size: int = 14) -> np.ndarray:

@@ -218,12 +218,13 @@ class _LandmarkOverlay:
         self.track, self.scale = track, scale
         regions = keys.regions if keys is not None else {}
         self.colours = landmark_colours(regions, track.n_landmarks)
+        self.radii = np.where((self.colours == OTHER_COLOUR).all(axis=1), 1.0, 1.6)
         self.edges = _contour_edges(track.n_landmarks)
 
     def __call__(self, image: np.ndarray, index: int) -> np.ndarray:
         points = self.track.points[index, :, :2] * self.scale
         valid = bool(self.track.valid[index])
-        out = draw_landmarks(image, points, self.colours, edges=self.edges) if valid else image
+        out = draw_landmarks(image, points, self.colours, edges=self.edges, radius=self.radii) if valid else image
         label = f"frame {index}   {index / self.track.fps:6.2f} s" + ("" if valid else "   no face")
         return caption(out, label)
 
