@@ -205,3 +205,245 @@ def test_json_chunk_is_plain_gltf(rig, weights, tmp_path):
     length = int.from_bytes(data[12:16], "little")
     document = json.loads(data[20 : 20 + length])
     assert document["asset"]["version"] == "2.0"
+
+
+# ---------------------------------------------------------------- sparse targets and several primitives
+
+
+def test_targets_moving_few_vertices_are_sparse(rig, weights, tmp_path):
+    deltas = rig.deltas.copy()
+    deltas[1, 3:] = 0.0  # moves 3 of 25 vertices
+    few = Rig(rig.vertices, rig.faces, deltas, rig.names)
+    path = write_glb(tmp_path / "sparse.glb", few, weights)
+    document = pygltflib.GLTF2().load(str(path))
+    targets = document.meshes[0].primitives[0].targets
+    sparse = document.accessors[targets[1]["POSITION"]]
+    assert sparse.bufferView is None and sparse.sparse.count == 3
+    assert document.accessors[targets[0]["POSITION"]].sparse is None
+    np.testing.assert_allclose(load_rig(path).deltas, few.deltas, atol=1e-7)
+    report = validate(path)
+    assert (report["numErrors"], report["numWarnings"]) == (0, 0), report["messages"]
+
+
+def _split_into_primitives(path, out):
+    """Rewrite a write_glb file: its triangles in two primitives sharing one vertex buffer,
+    plus a copy of the mesh as a second mesh (same names), as exporters split by material."""
+    document = pygltflib.GLTF2().load(str(path))
+    (primitive,) = document.meshes[0].primitives
+    indices = document.accessors[primitive.indices]
+    half = indices.count // 6 * 3
+    view = document.bufferViews[indices.bufferView]
+    item = 2 if indices.componentType == pygltflib.UNSIGNED_SHORT else 4
+    first = pygltflib.Accessor(bufferView=indices.bufferView, byteOffset=0, componentType=indices.componentType,
+                               count=half, type="SCALAR")
+    second = pygltflib.Accessor(bufferView=indices.bufferView, byteOffset=half * item,
+                                componentType=indices.componentType, count=indices.count - half, type="SCALAR")
+    assert view.byteLength == indices.count * item
+    document.accessors += [first, second]
+    primitive.indices = len(document.accessors) - 2
+    other = pygltflib.Primitive(attributes=pygltflib.Attributes(POSITION=primitive.attributes.POSITION),
+                                indices=len(document.accessors) - 1, material=0,
+                                targets=[dict(t) for t in primitive.targets])
+    document.meshes[0].primitives.append(other)
+    document.save_binary(str(out))
+    return out
+
+
+def test_primitives_sharing_a_vertex_buffer_share_rig_vertices(rig, weights, tmp_path):
+    path = _split_into_primitives(write_glb(tmp_path / "a.glb", rig, weights), tmp_path / "split.glb")
+    loaded = load_rig(path)
+    assert loaded.n_vertices == rig.n_vertices  # not duplicated
+    np.testing.assert_array_equal(np.sort(loaded.faces, axis=0), np.sort(rig.faces, axis=0))
+    rig_, parts = gltf_io.read_meshes(path)
+    assert [(p.mesh, p.primitive, p.start, p.count) for p in parts] == [(0, 0, 0, 25), (0, 1, 0, 25)]
+
+
+def test_target_names_on_the_first_primitive(rig, weights, tmp_path):
+    document = pygltflib.GLTF2().load(str(write_glb(tmp_path / "a.glb", rig, weights)))
+    document.meshes[0].primitives[0].extras = document.meshes[0].extras
+    document.meshes[0].extras = {}
+    document.save_binary(str(tmp_path / "b.glb"))
+    assert load_rig(tmp_path / "b.glb").names == rig.names
+    assert read_glb_animation(tmp_path / "b.glb").names == rig.names
+
+
+# ---------------------------------------------------------------- an artist's file kept whole
+
+from pathlib import Path  # noqa: E402
+
+from keyshape.io import _gltf_edit as edit  # noqa: E402
+from keyshape.io.gltf import animate_gltf, read_meshes, write_gltf_targets  # noqa: E402
+
+ROBOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "robot-expressive" / "RobotExpressive.glb"
+needs_robot = pytest.mark.skipif(not ROBOT.is_file(), reason=f"{ROBOT} not present (shared data)")
+
+
+def _clean(path):
+    report = validate(path)
+    assert (report["numErrors"], report["numWarnings"]) == (0, 0), report["messages"]
+
+
+def skinned_character(path, rig):
+    """A skinned morph-target mesh (joints Neck > Head), its node under the armature, not at the root."""
+    document = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0"), scene=0,
+                               scenes=[pygltflib.Scene(nodes=[0])])
+    blob = edit.Blob(document)
+    n = rig.n_vertices
+    joints = np.tile(np.array([1, 0, 0, 0], np.uint8), (n, 1))
+    skin_weights = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
+    attributes = pygltflib.Attributes(
+        POSITION=blob.add(rig.vertices.astype(np.float32), "VEC3", target=pygltflib.ARRAY_BUFFER, bounds=True),
+        JOINTS_0=blob.add(joints, "VEC4", target=pygltflib.ARRAY_BUFFER),
+        WEIGHTS_0=blob.add(skin_weights, "VEC4", target=pygltflib.ARRAY_BUFFER))
+    indices = blob.add(rig.faces.reshape(-1).astype(np.uint16), "SCALAR", target=pygltflib.ELEMENT_ARRAY_BUFFER)
+    targets = [{"POSITION": blob.add_target(d)} for d in rig.deltas]
+    document.meshes.append(pygltflib.Mesh(name="face", weights=[0.0] * rig.n_targets,
+                                          extras={"targetNames": list(rig.names)},
+                                          primitives=[pygltflib.Primitive(attributes=attributes, indices=indices,
+                                                                          targets=targets)]))
+    inverse_bind = np.stack([np.eye(4), np.eye(4)]).astype(np.float32)
+    inverse_bind[1, 3, 1] = -0.1  # column-major: translation (0, -0.1, 0) in the 4th column
+    document.skins.append(pygltflib.Skin(joints=[1, 2], inverseBindMatrices=blob.add(inverse_bind, "MAT4")))
+    document.nodes = [pygltflib.Node(name="Armature", children=[1, 3]),
+                      pygltflib.Node(name="Neck", children=[2]),
+                      pygltflib.Node(name="Head", translation=[0.0, 0.1, 0.0]),
+                      pygltflib.Node(name="face", mesh=0, skin=0)]
+    blob.finish()
+    document.save_binary(str(path))
+    return path
+
+
+def _head_world_rotations(path, animation_quats, head):
+    document = pygltflib.GLTF2().load(str(path))
+    parent = edit.parents(document).get(head)
+    p = edit.world_rotation(document, parent)
+    return p @ Rotation.from_quat(animation_quats).as_matrix()
+
+
+def test_skinned_character_turns_its_head_joint(rig, weights, tmp_path):
+    source = skinned_character(tmp_path / "skinned.glb", rig)
+    assert validate(source)["numWarnings"] == 1  # NODE_SKINNED_MESH_NON_ROOT in the source
+    poses = random_poses(weights.n_frames)
+    out = animate_gltf(source, weights, tmp_path / "anim.glb", poses=poses)
+    _clean(out)
+    document = pygltflib.GLTF2().load(str(out))
+    (animation,) = document.animations
+    rotation = [c for c in animation.channels if c.target.path == "rotation"]
+    assert [document.nodes[c.target.node].name for c in rotation] == ["Head"]
+    assert 3 in document.scenes[0].nodes and 3 not in document.nodes[0].children  # mesh at the root
+    assert document.skins[0].joints == [1, 2]
+    back = read_glb_animation(out)
+    np.testing.assert_array_equal(back.weights, weights.values.astype(np.float32))
+    world = _head_world_rotations(out, back.rotations, 2)
+    np.testing.assert_allclose(world, C @ poses.rotations @ C, atol=1e-6)
+
+
+@needs_robot
+def test_robot_keeps_everything_and_gains_the_performance(tmp_path):
+    original = pygltflib.GLTF2().load(str(ROBOT))
+    rig = load_rig(ROBOT)
+    rng = np.random.default_rng(7)
+    weights = Weights(rng.random((60, 3)), rig.names, fps=24)
+    poses = random_poses(60, seed=8)
+    out = animate_gltf(ROBOT, weights, tmp_path / "robot.glb", poses=poses)
+    _clean(out)
+    document = pygltflib.GLTF2().load(str(out))
+    assert [a.name for a in document.animations] == [a.name for a in original.animations] + ["keyshape"]
+    assert len(document.skins) == len(original.skins) and len(document.materials) == len(original.materials)
+    assert len(document.meshes) == len(original.meshes) == 19
+    performance = document.animations[-1]
+    weight_nodes = [document.nodes[c.target.node].name for c in performance.channels if c.target.path == "weights"]
+    assert weight_nodes == ["Head_2", "Head_3", "Head_4"]  # the three head primitives
+    back = read_glb_animation(out)
+    assert back.names == ("Angry", "Surprised", "Sad")
+    np.testing.assert_array_equal(back.weights, weights.values.astype(np.float32))
+    np.testing.assert_allclose(back.times, np.arange(60) / 24, atol=1e-6)
+    # deformed vertices recomputed from the written file
+    np.testing.assert_allclose(load_rig(out).pose(back.weights), rig.pose(weights.values), atol=1e-5)
+    (rotation,) = [c for c in performance.channels if c.target.path == "rotation"]
+    head = rotation.target.node
+    assert document.nodes[head].name == "Head"
+    rest = edit.world_rotation(original, head)
+    world = _head_world_rotations(out, back.rotations, head)
+    np.testing.assert_allclose(world, (C @ poses.rotations @ C) @ rest, atol=1e-5)
+
+
+@needs_robot
+def test_animating_twice_replaces_the_earlier_take(tmp_path):
+    rig = load_rig(ROBOT)
+    first = animate_gltf(ROBOT, Weights(np.ones((5, 3)), rig.names, 30), tmp_path / "a.glb")
+    second = animate_gltf(first, Weights(np.zeros((9, 3)), rig.names, 30), tmp_path / "b.glb")
+    document = pygltflib.GLTF2().load(str(second))
+    assert [a.name for a in document.animations].count("keyshape") == 1
+    assert read_glb_animation(second).weights.shape == (9, 3)
+    assert second.stat().st_size < first.stat().st_size + 2000  # the old take's data is pruned
+    _clean(second)
+
+
+@needs_robot
+def test_subset_of_targets_and_unknown_names(tmp_path):
+    out = animate_gltf(ROBOT, Weights(np.full((4, 1), 0.5), ("Sad",), 30), tmp_path / "sad.glb")
+    back = read_glb_animation(out)
+    np.testing.assert_array_equal(back.weights, [[0.0, 0.0, 0.5]] * 4)  # others at their rest weight
+    with pytest.raises(RigError, match=r"does not have: \['Happy'\]"):
+        animate_gltf(ROBOT, Weights(np.zeros((4, 1)), ("Happy",), 30), tmp_path / "x.glb")
+    assert not (tmp_path / "x.glb").exists()
+
+
+def test_head_node_by_name_or_a_clear_error(rig, weights, tmp_path):
+    source = write_glb(tmp_path / "two.glb", rig, Weights(np.zeros((0, 3)), rig.names, 30))
+    document = pygltflib.GLTF2().load(str(source))
+    document.nodes[0].name = "faceA"
+    document.nodes.append(pygltflib.Node(name="faceB", mesh=0, translation=[0.3, 0.0, 0.0]))
+    document.nodes.append(pygltflib.Node(name="Group", children=[0, 1]))
+    document.scenes[0].nodes = [2]
+    document.save_binary(str(tmp_path / "two.glb"))
+    poses = random_poses(weights.n_frames)
+    with pytest.raises(RigError, match="no head node found"):
+        animate_gltf(source, weights, tmp_path / "anim.glb", poses=poses)
+    out = animate_gltf(source, weights, tmp_path / "anim.glb", poses=poses, head="Group")
+    _clean(out)
+    with pytest.raises(RigError, match="no node named 'Neck'"):
+        animate_gltf(source, weights, tmp_path / "anim.glb", poses=poses, head="Neck")
+
+
+def test_gltf_with_external_buffer_and_image_becomes_one_glb(rig, weights, tmp_path):
+    from PIL import Image
+
+    glb = write_glb(tmp_path / "a.glb", rig, Weights(np.zeros((0, 3)), rig.names, 30))
+    document = pygltflib.GLTF2().load(str(glb))
+    Image.new("RGB", (4, 4), (200, 30, 30)).save(tmp_path / "skin.png")
+    document.images.append(pygltflib.Image(uri="skin.png"))
+    document.samplers.append(pygltflib.Sampler())
+    document.textures.append(pygltflib.Texture(source=0, sampler=0))
+    document.convert_buffers(pygltflib.BufferFormat.BINFILE)
+    document.save_json(str(tmp_path / "hero.gltf"))
+    assert (tmp_path / "hero.gltf").is_file() and list(tmp_path.glob("*.bin"))
+    out = animate_gltf(tmp_path / "hero.gltf", weights, tmp_path / "hero_anim.glb")
+    _clean(out)
+    packed = pygltflib.GLTF2().load(str(out))
+    assert packed.images[0].uri is None and packed.images[0].mimeType == "image/png"
+    assert len(packed.buffers) == 1 and packed.buffers[0].uri is None
+    np.testing.assert_array_equal(read_glb_animation(out).weights, weights.values.astype(np.float32))
+
+
+# ---------------------------------------------------------------- new targets on an original file
+
+
+@needs_robot
+def test_new_targets_on_the_robot(tmp_path):
+    neutral, parts = read_meshes(ROBOT)
+    assert sorted({p.mesh for p in parts}) == [3, 4, 5] and neutral.names == ("Angry", "Surprised", "Sad")
+    rng = np.random.default_rng(9)
+    deltas = rng.normal(scale=0.001, size=(2, neutral.n_vertices, 3))
+    targets = Rig(neutral.vertices, neutral.faces, deltas, ("upper_00", "lower_00"))
+    out = write_gltf_targets(ROBOT, tmp_path / "kit.glb", targets)
+    _clean(out)
+    back = load_rig(out)
+    assert back.names == ("upper_00", "lower_00")
+    np.testing.assert_allclose(back.deltas, deltas, atol=1e-7)
+    document = pygltflib.GLTF2().load(str(out))
+    assert all(c.target.path != "weights" for a in document.animations for c in a.channels)
+    assert len(document.animations) == 14  # the skeletal animations stay
+    with pytest.raises(RigError, match="have 1742 vertices but the rig has 3"):
+        write_gltf_targets(ROBOT, tmp_path / "bad.glb", Rig(np.eye(3), [[0, 1, 2]], np.ones((1, 3, 3)), ("x",)))

@@ -171,12 +171,13 @@ def head_angles(rotations: np.ndarray) -> np.ndarray:
 
 def _write_rows(path, fps: float, table: np.ndarray, angles: np.ndarray) -> None:
     rate = max(int(round(fps)), 1)
-    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as handle:
-        out = csv.writer(handle)
-        out.writerow(HEADER)
-        for frame, (row, rotation) in enumerate(zip(table, angles)):
-            out.writerow([timecode(frame, rate), len(LIVELINK_NAMES) + len(ROTATION_NAMES),
-                          *(f"{v:.6f}" for v in row), *(f"{v:.6f}" for v in rotation)])
+    count = len(LIVELINK_NAMES) + len(ROTATION_NAMES)
+    row_format = ",".join(["%.6f"] * count)
+    values = np.concatenate([table, angles], axis=1)
+    lines = [",".join(HEADER)]
+    lines += [f"{timecode(frame, rate)},{count}," + row_format % tuple(row) for frame, row in enumerate(values)]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\r\n".join(lines) + "\r\n", encoding="utf-8")
 
 
 def timecode(frame: int, rate: int) -> str:
