@@ -82,3 +82,18 @@ def test_error_vs_k_rejects_bad_tables(tmp_path):
     with pytest.raises(InputError, match="empty"):
         plots.error_vs_k({}, tmp_path / "k.png")
     assert not list(tmp_path.iterdir())
+
+
+def test_contact_sheet_keys_from_another_take_show_their_shape(take, tmp_path):
+    perf, keys, _, _ = take
+    from keyshape.containers import KeyShapes
+
+    other = KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames, keys.key_regions, keys.regions,
+                      takes=("a.mp4", "b.mp4", "a.mp4", "b.mp4"), neutral_take="a.mp4",
+                      neutral_frame=keys.neutral_frame)
+    frames = [int(keys.neutral_frame), *keys.frames.tolist()]
+    images = {f: np.full((480, 640, 3), 90, np.uint8) for f in frames}
+    grey = lambda p: (np.abs(read_png(p).astype(int) - 90).sum(axis=2) == 0).mean()  # noqa: E731
+    mine = grey(plots.contact_sheet(other, perf.track, images, tmp_path / "a.png", take=("x.mp4", "a.mp4")))
+    none = grey(plots.contact_sheet(other, perf.track, images, tmp_path / "n.png", take="x.mp4"))
+    assert none == 0 < mine  # only the tiles of take a.mp4 show video frames

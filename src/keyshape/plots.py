@@ -54,7 +54,7 @@ def _rgb(colour) -> tuple[float, float, float]:
 
 
 def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray], path, *,
-                  take: str = "", columns: int = 6) -> Path:
+                  take: str | tuple[str, ...] = "", columns: int = 6) -> Path:
     """The "sculpt list": the neutral frame and every key frame, cropped around the face.
 
     Each tile shows the frame with its landmarks, the key's region highlighted in the
@@ -71,8 +71,8 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
         Video frames by frame index (those of ``keys.frames`` and ``keys.neutral_frame``).
     path : str or Path
         Output PNG.
-    take : str, keyword-only
-        Name of this take as recorded in ``keys.takes`` (e.g. the video's file name).
+    take : str or tuple of str, keyword-only
+        Name(s) of this take as recorded in ``keys.takes`` (e.g. the video's or the track's file name).
     columns : int, keyword-only
 
     Returns
@@ -86,8 +86,9 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
     figure = _figure(2.3 * columns, 2.55 * rows)
     axes = figure.subplots(rows, columns, squeeze=False).ravel()
     palette = region_palette(keys.regions)
+    ours = {"", *((take,) if isinstance(take, str) else take)}
     for ax, (name, region, frame, source) in zip(axes, tiles):
-        own = source in ("", take) and 0 <= frame < track.n_frames and track.valid[frame]
+        own = source in ours and 0 <= frame < track.n_frames and track.valid[frame]
         key = None if region is None else keys.names.index(name)
         _tile(ax, keys, key, track.points[frame] if own else None, images.get(frame) if own else None,
               palette)

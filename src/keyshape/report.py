@@ -405,8 +405,9 @@ def _pictures(outdir: Path, take: _Take, fit: FitQuality, k_table) -> dict[str, 
 
     frames = [int(take.keys.neutral_frame), *take.keys.frames.tolist()]
     images = _read_frames(take.video, frames)
+    names = (take.name, take.info.get("files", {}).get("track", "track.npz"))
     out = {"keyshapes": plots.contact_sheet(take.keys, take.track, images, outdir / "keyshapes.png",
-                                            take=take.name),
+                                            take=names),
            "weights": plots.weight_curves(take.weights, take.keys, fit, outdir / "weights.png")}
     k_table = k_table if k_table is not None else _read_k_table(outdir / "error_vs_k.json")
     if k_table:
