@@ -100,3 +100,60 @@ def test_matrix_is_read_only(weights):
     mapping = Mapping.by_name(weights, weights)
     with pytest.raises(ValueError):
         mapping.matrix[0, 0] = 2.0
+
+
+# ---------------------------------------------------------------- mapping files
+
+import json  # noqa: E402
+
+
+def _write(path, data):
+    path.write_text(json.dumps(data) if not isinstance(data, str) else data)
+    return path
+
+
+def test_mapping_file_plain_wrapped_and_matrix(weights, tmp_path):
+    gains = {"lower_00": {"jawOpen": 0.8, "mouthFunnel": 0.3}, "upper_00": {"browInnerUp": 1.0}}
+    plain = Mapping.from_file(_write(tmp_path / "plain.json", gains))
+    assert plain.to_dict() == gains
+    wrapped = Mapping.from_file(plain.save(tmp_path / "saved.json"))
+    np.testing.assert_array_equal(wrapped.matrix, plain.matrix)
+    assert json.loads((tmp_path / "saved.json").read_text())["format"] == "keyshape-map"
+    matrix = {"keys": ["lower_00", "upper_00"], "targets": ["jawOpen", "mouthFunnel", "browInnerUp"],
+              "matrix": [[0.8, 0.0], [0.3, 0.0], [0.0, 1.0]]}
+    assert Mapping.from_file(_write(tmp_path / "m.json", matrix)).to_dict() == gains
+    out = retarget(weights, plain)
+    np.testing.assert_allclose(out.values[:, 0], 0.8 * weights.values[:, 1])
+
+
+def test_mapping_file_in_rig_order(tmp_path):
+    path = _write(tmp_path / "map.json", {"k": {"Sad": 0.5}})
+    mapping = Mapping.from_file(path, targets=("Angry", "Surprised", "Sad"))
+    assert mapping.targets == ("Angry", "Surprised", "Sad") and mapping.matrix[:, 0].tolist() == [0, 0, 0.5]
+
+
+@pytest.mark.parametrize("content, message", [
+    ("{not json", r"bad\.json: not a readable JSON mapping"),
+    ("[1, 2]", r"bad\.json: expected a JSON object \{key: \{target: gain"),
+    ('{"k": 0.5}', r"bad\.json: key 'k' must map to an object"),
+    ('{"k": {"t": -1}}', r"bad\.json: gain for key 'k' -> target 't' must be finite and >= 0"),
+    ('{"keys": ["a"], "targets": ["t"], "matrix": [[1, 2]]}', r"bad\.json: matrix must have shape"),
+])
+def test_bad_mapping_files_name_the_file(tmp_path, content, message):
+    with pytest.raises(InputError, match=message):
+        Mapping.from_file(_write(tmp_path / "bad.json", content))
+
+
+def test_mapping_file_naming_targets_the_rig_lacks(tmp_path):
+    path = _write(tmp_path / "map.json", {"k": {"Happy": 1.0, "Sad": 1.0}})
+    with pytest.raises(RigError, match=r"map\.json: .*does not have: \['Happy'\]"):
+        Mapping.from_file(path, targets=("Angry", "Sad"))
+    with pytest.raises(InputError, match="mapping file not found"):
+        Mapping.from_file(tmp_path / "missing.json")
+
+
+def test_from_dict_with_given_sources():
+    mapping = Mapping.from_dict({"b": {"t": 1.0}}, sources=["a", "b"])
+    assert mapping.sources == ("a", "b") and mapping.matrix.tolist() == [[0.0, 1.0]]
+    with pytest.raises(InputError, match=r"keys \['c'\] not among the sources"):
+        Mapping.from_dict({"c": {"t": 1.0}}, sources=["a", "b"])

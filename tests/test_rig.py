@@ -199,3 +199,68 @@ def test_rig_from_2d_keyshapes_and_bad_faces():
     assert rig.vertices.shape == (3, 3) and (rig.vertices[:, 2] == 0).all()
     with pytest.raises(InputError, match=r"faces must index landmarks 0\.\.2; got 0\.\.3"):
         rig_from_keyshapes(keys, [[0, 1, 3]])
+
+
+# ---------------------------------------------------------------- OBJ details, units, dispatch
+
+from keyshape.rig import _read_obj_checked, _read_obj_fast, parse_unit  # noqa: E402
+
+
+def test_fast_and_checked_obj_readers_agree(tmp_path):
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(40, 3))
+    lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in vertices]
+    lines += ["vt 0.5 0.5", "vn 0 0 1", "g mesh", "usemtl skin", "s off"]
+    polygons = [rng.choice(40, size=rng.integers(3, 7), replace=False) for _ in range(30)]
+    lines += ["f " + " ".join(f"{i + 1}/1/1" for i in p) for p in polygons]
+    lines += ["f  1  2   3 "]  # extra spaces
+    text = "\r\n".join(lines) + "\r\n"  # Windows line ends
+    fast = _read_obj_fast(text)
+    checked = _read_obj_checked(text.splitlines(), "x.obj")
+    assert fast is not None
+    np.testing.assert_array_equal(fast[0], checked[0])
+    np.testing.assert_array_equal(fast[1], checked[1])
+    assert len(fast[1]) == sum(len(p) - 2 for p in polygons) + 1
+
+
+def test_vertex_colours_are_ignored(tmp_path):
+    (tmp_path / "c.obj").write_text("v 0 0 0 1 0 0\nv 1 0 0 0 1 0\nv 0 1 0 0 0 1\nf 1 2 3\n")
+    vertices, faces = read_obj(tmp_path / "c.obj")
+    assert vertices.shape == (3, 3) and faces.tolist() == [[0, 1, 2]]
+
+
+def test_single_obj_is_a_neutral_without_targets(rig, tmp_path):
+    folder = save_obj_folder(rig, tmp_path / "hero")
+    neutral = load_rig(folder / "neutral.obj")
+    assert neutral.n_targets == 0 and neutral.n_vertices == rig.n_vertices
+
+
+def test_neutral_found_by_name(rig, tmp_path):
+    folder = save_obj_folder(rig, tmp_path / "hero")
+    (folder / "neutral.obj").rename(folder / "generic_neutral_mesh.obj")
+    assert load_rig(folder).names == rig.names
+    (folder / "neutral_old.obj").write_text((folder / "generic_neutral_mesh.obj").read_text())
+    with pytest.raises(RigError, match=r"no neutral\.obj .*candidates: \['generic_neutral_mesh\.obj', 'neutral_old\.obj'\]"):
+        load_rig(folder)
+
+
+def test_units(rig, tmp_path):
+    folder = save_obj_folder(rig, tmp_path / "hero")
+    in_cm, as_is = load_rig(folder, unit=parse_unit("cm")), load_rig(folder)
+    np.testing.assert_allclose(in_cm.vertices, as_is.vertices * 0.01, rtol=1e-12)
+    np.testing.assert_allclose(in_cm.deltas, as_is.deltas * 0.01, rtol=1e-12)
+    assert parse_unit("0.0254") == parse_unit("in") == 0.0254
+    with pytest.raises(InputError, match="unit must be one of m, cm, mm, in, ft"):
+        parse_unit("furlong")
+    with pytest.raises(InputError, match="positive number"):
+        load_rig(folder, unit=-1)
+    glb = write_glb(tmp_path / "hero.glb", rig, Weights(np.zeros((1, 3)), rig.names, fps=30))
+    with pytest.raises(InputError, match="unit applies to OBJ files only"):
+        load_rig(glb, unit=0.01)
+
+
+def test_compressed_gltf_is_refused_clearly(rig, tmp_path):
+    glb = write_glb(tmp_path / "hero.glb", rig, Weights(np.zeros((2, 3)), rig.names, fps=30))
+    out = _rewrite(glb, tmp_path / "draco.glb", lambda d: setattr(d, "extensionsUsed", ["KHR_draco_mesh_compression"]))
+    with pytest.raises(RigError, match="compressed geometry cannot be read as a rig"):
+        load_rig(out)
