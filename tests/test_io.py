@@ -111,3 +111,12 @@ def test_landmark_csv_3d_and_bad_header(tmp_path):
     bad.write_text("frame,a,b\n0,1,2\n")
     with pytest.raises(InputError, match="bad.csv: landmark columns must be x0,y0"):
         load_track(bad)
+
+
+def test_written_files_have_the_usual_permissions(tmp_path):
+    import os
+
+    path = save_weights_csv(Weights(np.zeros((2, 1)), ("a",), 30), tmp_path / "w.csv")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~mask
