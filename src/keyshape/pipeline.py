@@ -96,6 +96,14 @@ def head_poses(track: Track) -> Poses:
     return align(track, reference=track.points[neutral], stable=stable)[1]
 
 
+def arkit_scores(track: Track, *, source: str | Path = "track") -> Weights:
+    """MediaPipe's ARKit-style scores as Weights ``(n_frames, 52)`` (``_neutral`` left out)."""
+    if track.blendshapes is None or not track.blendshape_names:
+        raise InputError(f"{source}: has no blendshape scores (tracks from `keyshape track` do)")
+    keep = [i for i, n in enumerate(track.blendshape_names) if not n.startswith("_")]
+    return Weights(track.blendshapes[:, keep], [track.blendshape_names[i] for i in keep], track.fps)
+
+
 def default_character(keys: KeyShapes) -> Rig:
     """The demo's character: a face mesh of the actor's neutral landmarks, one target per key.
 
