@@ -206,13 +206,14 @@ def _font(size: int):
 def _decode(video, wanted: set[int]) -> dict[int, np.ndarray]:
     from .capture.video import iter_frames
 
-    found = {}
+    found, count = {}, 0
     for index, (_, rgb) in enumerate(iter_frames(video, end=max(wanted) + 1)):
+        count = index + 1
         if index in wanted:
             found[index] = rgb
     missing = sorted(wanted - set(found))
     if missing:
-        raise InputError(f"{video}: has no frame {missing[0]} (it ends at frame {len(found) and max(found)}); "
+        raise InputError(f"{video}: has no frame {missing[0]} (it has {count} frames); "
                          "give the video the keys come from")
     return found
 

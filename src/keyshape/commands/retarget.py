@@ -86,11 +86,11 @@ def _mapping(args, weights, rig):
 
 
 def _poses(args, weights):
+    if args.track is None:
+        return None
     from ..io.track import load_track
     from ..pipeline import head_poses
 
-    if args.track is None:
-        return None
     track = load_track(args.track)
     if track.n_frames != weights.n_frames:
         raise InputError(f"{args.track}: has {track.n_frames} frames but {args.weights} has {weights.n_frames}")

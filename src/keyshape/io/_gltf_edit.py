@@ -121,6 +121,9 @@ def pack(document: pygltflib.GLTF2, buffers: list[bytes], path: Path) -> Blob:
     for view in document.bufferViews:
         view.byteOffset = (view.byteOffset or 0) + offsets[view.buffer]
         view.buffer = 0
+    for accessor in document.accessors:
+        if accessor.bufferView is None:  # pygltflib reads a missing byteOffset as 0; glTF forbids it here
+            accessor.byteOffset = None
     blob = Blob(document, data)
     for image in document.images:
         if image.uri is not None:

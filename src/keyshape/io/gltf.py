@@ -347,7 +347,7 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
         Neutral vertices (mesh-local, as stored) and the meshes' existing targets, if any.
     parts : list of Part
     """
-    document, buffers = load_document(path)
+    document, buffers = load_document(path, editable=False)
     chosen = _choose_meshes(document, meshes, path)
     return read_parts(document, buffers, chosen, path)
 
