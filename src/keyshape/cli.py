@@ -101,8 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="discover key shapes (real frames) per region",
                        description="Choose K real frames per face region that span the performance "
                                    "(the key shapes an artist will sculpt on the character).")
-    p.add_argument("track", type=Path, help="track file (.npz with points and fps, or a landmark CSV "
-                                            "frame,x0,y0[,z0],x1,... from another tool)")
+    p.add_argument("tracks", type=Path, nargs="+", metavar="TRACK",
+                   help="track file(s) (.npz with points and fps, or a landmark CSV frame,x0,y0[,z0],"
+                        "x1,... from another tool); several takes of one actor give one key set")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="KEYS.json")
     _add_key_options(p)
 
@@ -183,16 +184,17 @@ def cmd_keys(args) -> None:
     from .io.track import load_track
     from .pipeline import discover_keys
 
-    track = load_track(args.track)
-    keys = discover_keys(track, regions=args.regions, n_keys=args.count, method=args.method,
-                         neutral=args.neutral, take=args.track.name)
+    tracks = [load_track(path) for path in args.tracks]
+    keys = discover_keys(tracks, regions=args.regions, n_keys=args.count, method=args.method,
+                         neutral=args.neutral, take=[path.name for path in args.tracks])
     save_keys(keys, args.output)
     _say(args, f"{args.output}: neutral frame {keys.neutral_frame}; " + _describe_keys(keys))
 
 
 def _describe_keys(keys) -> str:
-    parts = [f"{r}: frames {', '.join(str(keys.frames[k]) for k in keys.keys_of(r))}"
-             for r in keys.regions]
+    several = len(set(keys.takes)) > 1
+    where = [f"{t}:{f}" if several else str(f) for t, f in zip(keys.takes, keys.frames)]
+    parts = [f"{r}: frames {', '.join(where[k] for k in keys.keys_of(r))}" for r in keys.regions]
     return "; ".join(parts)
 
 

@@ -7,6 +7,7 @@ stays usable on its own.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,9 +23,9 @@ from .schemes import face_triangles, resolve_regions, stable_points
 __all__ = ["discover_keys", "solve_take", "default_character", "Solved"]
 
 
-def _check_neutral(track: Track, neutral: int | None) -> int:
+def _check_neutral(track: Track, neutral: int | None, stable: np.ndarray) -> int:
     if neutral is None:
-        return choose_neutral(track, stable=stable_points(track.n_landmarks))
+        return choose_neutral(track, stable=stable)
     if not 0 <= neutral < track.n_frames:
         raise InputError(f"--neutral must be a frame in 0..{track.n_frames - 1}; got {neutral}")
     if not track.valid[neutral]:
@@ -32,37 +33,56 @@ def _check_neutral(track: Track, neutral: int | None) -> int:
     return neutral
 
 
-def discover_keys(track: Track, *, regions: str | Path = "upper-lower", n_keys: int = 8,
-                  method: str = "spa", neutral: int | None = None, take: str = "") -> KeyShapes:
-    """Key shapes of one take: pick the neutral frame, align onto it, select real frames.
+def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = "upper-lower",
+                  n_keys: int = 8, method: str = "spa", neutral: int | None = None,
+                  take: str | Sequence[str] = "", stable: np.ndarray | None = None) -> KeyShapes:
+    """Key shapes of one take, or one key set across several takes of the same actor.
+
+    Pick the neutral frame (of the first take), align every frame of every take onto it,
+    and select real frames per region from all takes together; each key records its take
+    and frame, so one set of sculpted targets serves every take.
 
     Parameters
     ----------
-    track : Track in image coordinates
-    regions : region scheme name or REGIONS.json path (see :func:`keyshape.schemes.resolve_regions`)
+    track : Track in image coordinates, or a sequence of them (same landmark scheme)
+    regions : region scheme name, REGIONS.json path (see :func:`keyshape.schemes.resolve_regions`)
+        or a dict region -> (n_region_landmarks,) int
     n_keys : key shapes per region
     method : "spa", "hull" or "spread"
-    neutral : the neutral frame, or None to choose it automatically
+    neutral : the neutral frame of the first take, or None to choose it automatically
         (:func:`keyshape.align.choose_neutral`: the frame closest to the median aligned shape)
-    take : a name for the take, recorded with every key
+    take : a name per take, recorded with every key
+    stable : (n_stable,) int landmarks to align on (default: the scheme's stable points)
     """
-    if track.valid.sum() < 2:
-        raise InputError(f"a track needs at least 2 frames with a face; this one has {int(track.valid.sum())}")
-    region_map = resolve_regions(regions, track.n_landmarks)
-    stable = stable_points(track.n_landmarks)
-    neutral = _check_neutral(track, neutral)
-    aligned, _ = align(track, reference=track.points[neutral], stable=stable)
-    keys = find_keyshapes(aligned, regions=region_map, n_keys=n_keys, method=method,
+    tracks = [track] if isinstance(track, Track) else list(track)
+    takes = [take] if isinstance(take, str) else list(take)
+    takes = takes if len(takes) == len(tracks) else [f"take{i}" for i in range(len(tracks))]
+    first = tracks[0]
+    for name, other in zip(takes, tracks):
+        if (other.n_landmarks, other.n_dims) != (first.n_landmarks, first.n_dims):
+            raise InputError(f"{name}: has {other.n_landmarks} landmarks in {other.n_dims}D but "
+                             f"{takes[0]} has {first.n_landmarks} in {first.n_dims}D")
+    valid = sum(int(t.valid.sum()) for t in tracks)
+    if valid < 2:
+        raise InputError(f"a track needs at least 2 frames with a face; this one has {valid}")
+    region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
+    stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
+    neutral = _check_neutral(first, neutral, stable)
+    reference = first.points[neutral]
+    aligned = [align(t, reference=reference, stable=stable)[0].points for t in tracks]
+    together = Track(np.concatenate(aligned), first.fps)
+    keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
                           neutral_frame=neutral, stable=stable)
-    if take:
-        keys = _with_take(keys, take)
-    return keys
+    return _split_takes(keys, [t.n_frames for t in tracks], takes)
 
 
-def _with_take(keys: KeyShapes, take: str) -> KeyShapes:
-    return KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames, keys.key_regions,
-                     keys.regions, (take,) * keys.n_keys, keys.neutral_frame, take, keys.method,
-                     keys.stable)
+def _split_takes(keys: KeyShapes, lengths: list[int], takes: list[str]) -> KeyShapes:
+    """Turn frame indices into the concatenated takes back into (take, frame) pairs."""
+    starts = np.cumsum([0, *lengths[:-1]])
+    which = np.searchsorted(starts, keys.frames, side="right") - 1
+    return KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames - starts[which],
+                     keys.key_regions, keys.regions, tuple(takes[i] for i in which),
+                     keys.neutral_frame, takes[0], keys.method, keys.stable)
 
 
 @dataclass(frozen=True)
