@@ -16,12 +16,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from keyshape.cli import main
-from keyshape.containers import Poses, Rig, Weights
+from keyshape.containers import Poses, Weights
 from keyshape.exceptions import InputError
 from keyshape.io.export import Format, export, format_of
 from keyshape.io.gltf import read_glb_animation
 from keyshape.io.livelink import LIVELINK_NAMES, read_livelink_csv
-from keyshape.io.track import save_track
 from keyshape.io.weights_csv import load_weights_csv, save_weights_csv
 from keyshape.retarget import Mapping, retarget
 from keyshape.rig import load_rig
@@ -154,8 +153,8 @@ def test_ict_driven_through_an_arkit_mapping(ict, ict_folder, key_weights, head,
 
     live = read_livelink_csv(export(anim, tmp_path / "ict_livelink.csv", format="livelink", poses=head), fps=24)
     column = dict(zip(LIVELINK_NAMES, live.weights.values.T))
-    np.testing.assert_allclose(column["JawOpen"], np.clip(np.nan_to_num(anim.values[:, ict.names.index("jawOpen")]), 0, 1),
-                               atol=1e-6)
+    jaw = np.nan_to_num(anim.values[:, ict.names.index("jawOpen")])
+    np.testing.assert_allclose(column["JawOpen"], np.clip(jaw, 0, 1), atol=1e-6)
     browinner = np.nan_to_num(key_weights.values[:, 0])  # both halves at gain 1: the mean is the key weight
     np.testing.assert_allclose(column["BrowInnerUp"], np.clip(browinner, 0, 1), atol=1e-6)
     np.testing.assert_allclose(np.degrees(live.rotations[:, 0]), -np.linspace(-20, 20, 72), atol=1e-3)

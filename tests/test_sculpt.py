@@ -182,3 +182,83 @@ def test_sculpt_command(take, head_obj, tmp_path, capsys):
     assert main(["sculpt", str(folder / "keys.json"), "--rig", str(head_obj), "-o", str(tmp_path / "kit2"),
                  "-q"]) == 0  # the video named in take.json
     assert (tmp_path / "kit2" / "keys.png").is_file()
+
+
+# ---------------------------------------------------------------- the real tool: Blender (optional)
+
+import os  # noqa: E402
+import subprocess  # noqa: E402
+
+BLENDER_PYTHON = os.environ.get("KEYSHAPE_BPY_PYTHON")  # a Python with `pip install bpy`
+BLENDER_SCULPT = """
+import sys, bpy
+kit, out = sys.argv[1], sys.argv[2]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_scene.gltf(filepath=kit)
+meshes = [o for o in bpy.data.objects if o.type == "MESH" and o.data.shape_keys]
+print("KEYS", ",".join(k.name for k in meshes[0].data.shape_keys.key_blocks))
+for o in meshes:  # the artist: key k raises every 7th vertex by 2k mm
+    for k, block in enumerate(o.data.shape_keys.key_blocks[1:], 1):
+        for i, point in enumerate(block.data):
+            if i % 7 == k % 7:
+                point.co.z += 0.002 * k
+bpy.ops.export_scene.gltf(filepath=out, export_format="GLB", export_morph=True)
+"""
+
+
+@pytest.mark.skipif(not BLENDER_PYTHON, reason="set KEYSHAPE_BPY_PYTHON to a Python with bpy (pip install bpy)")
+def test_blender_sculpts_the_kit_and_retarget_drives_its_export(take, head_obj, tmp_path):
+    keys, track, video = take
+    kit = write_sculpt_kit(keys, head_obj, tmp_path / "kit", track=track, video=video, unit=0.01)
+    script = tmp_path / "sculpt_in_blender.py"
+    script.write_text(BLENDER_SCULPT)
+    sculpted = tmp_path / "from_blender.glb"
+    run = subprocess.run([BLENDER_PYTHON, str(script), str(kit.glb), str(sculpted)], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "KEYS Basis," + ",".join(keys.names) in run.stdout  # Blender sees one shape key per key
+    rig = load_rig(sculpted)
+    assert rig.names == keys.names
+    np.testing.assert_allclose(np.abs(rig.deltas).max(axis=(1, 2)), [0.002, 0.004, 0.006], atol=1e-6)
+    weights = _key_weights(keys)
+    out = tmp_path / "anim.glb"
+    assert main(["retarget", str(save_weights_csv(weights, tmp_path / "w.csv")), "--rig", str(sculpted),
+                 "-o", str(out), "-q"]) == 0
+    _clean(out)
+    np.testing.assert_allclose(load_rig(out).pose(read_glb_animation(out).weights), rig.pose(weights.values),
+                               atol=1e-5)
+
+
+BLENDER_READ = """
+import sys, json, bpy
+path = sys.argv[1]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+if path.endswith(".glb"):
+    bpy.ops.import_scene.gltf(filepath=path)
+else:
+    bpy.ops.wm.usd_import(filepath=path)
+(face,) = [o for o in bpy.data.objects if o.type == "MESH" and o.data.shape_keys]
+values = []
+for frame in range(int(sys.argv[2])):
+    bpy.context.scene.frame_set(frame)
+    values.append([k.value for k in face.data.shape_keys.key_blocks[1:]])
+print("VALUES " + json.dumps({"names": [k.name for k in face.data.shape_keys.key_blocks[1:]], "values": values}))
+"""
+
+
+@pytest.mark.skipif(not BLENDER_PYTHON, reason="set KEYSHAPE_BPY_PYTHON to a Python with bpy (pip install bpy)")
+@pytest.mark.parametrize("suffix", [".glb", ".usda"])
+def test_blender_plays_the_exported_weights(head_obj, tmp_path, suffix):
+    from keyshape.io.export import export
+
+    neutral = load_rig(head_obj, unit=0.01)
+    rig = _artist(Rig(neutral.vertices, neutral.faces, np.zeros((3, neutral.n_vertices, 3)), ("a", "b", "c")))
+    weights = Weights(np.random.default_rng(4).random((12, 3)), rig.names, fps=24.0)  # Blender's default rate
+    path = export(weights, tmp_path / f"anim{suffix}", rig=rig)
+    script = tmp_path / "read_in_blender.py"
+    script.write_text(BLENDER_READ)
+    run = subprocess.run([BLENDER_PYTHON, str(script), str(path), "12"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    seen = json.loads(run.stdout.split("VALUES ", 1)[1].splitlines()[0])
+    assert seen["names"] == list(rig.names)
+    np.testing.assert_allclose(seen["values"], weights.values, atol=1e-5)

@@ -183,7 +183,8 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
               fill=(235, 235, 235), font=_font(15))
     for row, region in enumerate(regions):
         colour = _REGION_COLOURS[row % len(_REGION_COLOURS)]
-        entries = [("neutral", int(keys.neutral_frame))] + [(keys.names[k], int(keys.frames[k])) for k in keys.keys_of(region)]
+        entries = [("neutral", int(keys.neutral_frame))]
+        entries += [(keys.names[k], int(keys.frames[k])) for k in keys.keys_of(region)]
         for column, (name, frame) in enumerate(entries):
             picture = _cell(frames[frame], track.points[frame, :, :2], keys.regions[region], colour, cell)
             x, y = column * cell, title + row * (cell + label)

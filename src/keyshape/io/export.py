@@ -16,7 +16,7 @@ format        suffixes                         writer
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 
 from ..containers import Poses, Rig, Weights
@@ -25,7 +25,7 @@ from ..exceptions import InputError
 __all__ = ["Format", "export", "format_of"]
 
 
-class Format(str, Enum):
+class Format(StrEnum):
     """The export formats."""
 
     GLB = "glb"

@@ -176,7 +176,7 @@ def _blend_shapes(stage, mesh, skeleton, rig: Rig) -> None:
     binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
     binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
     paths = []
-    for name, identifier, delta in zip(rig.names, _identifiers(rig.names, Tf), rig.deltas):
+    for identifier, delta in zip(_identifiers(rig.names, Tf), rig.deltas):
         shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(identifier))
         moved = np.flatnonzero(np.any(delta != 0, axis=1)).astype(np.int32)
         shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta[moved], dtype=np.float32)))
