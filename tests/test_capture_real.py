@@ -89,3 +89,11 @@ def test_frame_range_and_image_folder(demo_clip, real_track, tmp_path):
         Image.fromarray(rgb).save(folder / f"{i:04d}.png")
     images = track_video(folder, fps=24, progress=False)
     assert images.n_frames == 12 and images.fps == 24 and images.valid.all()
+
+
+def test_one_euro_option_smooths_the_landmarks(demo_clip, real_track):
+    filtered = track_video(demo_clip, end=100, one_euro={"min_cutoff": 1.0, "beta": 0.05}, progress=False)
+    jitter = lambda p: np.abs(np.diff(p[:, :, :2], 2, axis=0)).mean()  # noqa: E731
+    assert jitter(filtered.points) < 0.8 * jitter(real_track.points[:100])
+    drift = np.linalg.norm(filtered.points[:, :, :2] - real_track.points[:100, :, :2], axis=2)
+    assert np.median(drift) < 3.0  # smoothing, not moving the face

@@ -75,6 +75,10 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--face", type=int, default=0, metavar="N",
                    help="which person to follow when several are visible: 0 = the largest face at "
                         "the start (default), 1 = the next largest, ...")
+    p.add_argument("--one-euro", nargs="?", const="1.0,0.05", default=None, metavar="MINCUT,BETA",
+                   help="causal One Euro filter on the landmarks, for live-like use (default "
+                        "settings 1.0 Hz, 0.05). Offline, prefer the solve's zero-lag smoothing; "
+                        "MediaPipe's video mode already smooths")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -176,7 +180,20 @@ def cmd_track(args) -> None:
 
 
 def _capture_kwargs(args) -> dict:
-    return {"start": args.start, "end": args.end, "fps": args.fps, "face": args.face}
+    return {"start": args.start, "end": args.end, "fps": args.fps, "face": args.face,
+            "one_euro": _one_euro(args.one_euro)}
+
+
+def _one_euro(text: str | None) -> dict | None:
+    if text is None:
+        return None
+    try:
+        min_cutoff, beta = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--one-euro expects MINCUT,BETA such as 1.0,0.05; got {text!r}") from None
+    if min_cutoff <= 0 or beta < 0:
+        raise InputError(f"--one-euro needs MINCUT > 0 and BETA >= 0; got {text!r}")
+    return {"min_cutoff": min_cutoff, "beta": beta}
 
 
 def cmd_keys(args) -> None:
@@ -253,6 +270,7 @@ def cmd_run(args) -> None:
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
     args.start, args.end, args.fps, args.face, args.no_preview = 0, None, None, 0, False
+    args.one_euro = None
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))
     _run(args, clip)
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["find_gaps", "GapReport", "gap_report", "one_euro", "hold_neutral"]
+__all__ = ["find_gaps", "GapReport", "gap_report", "OneEuro", "one_euro", "hold_neutral"]
 
 
 def find_gaps(valid: np.ndarray) -> list[tuple[int, int]]:
@@ -87,37 +87,43 @@ def _alpha(cutoff: np.ndarray | float, rate: float) -> np.ndarray:
     return 1.0 / (1.0 + tau * rate)
 
 
-def one_euro(points: np.ndarray, fps: float, *, min_cutoff: float = 1.0, beta: float = 0.05,
-             d_cutoff: float = 1.0) -> np.ndarray:
-    """The One Euro filter (Casiez, Roussel & Vogel, CHI 2012) on every coordinate.
+class OneEuro:
+    """The One Euro filter (Casiez, Roussel & Vogel, CHI 2012), one sample at a time.
 
     A first-order low-pass whose cutoff rises with speed: ``fc = min_cutoff + beta·|dx/dt|``,
     so slow motion is smoothed and fast motion follows with little lag. Causal (live-friendly);
-    a NaN frame resets the filter.
+    a NaN sample resets the filter.
 
     Parameters
     ----------
-    points : (n_frames, ...) float, e.g. (n_frames, n_landmarks, 3) pixels
     fps : frame rate
     min_cutoff : Hz, the cutoff at rest; lower = smoother
     beta : speed coefficient; higher = less lag on fast motion
     d_cutoff : Hz, cutoff of the speed estimate
-
-    Returns
-    -------
-    (n_frames, ...) float, filtered
     """
-    points = np.asarray(points, dtype=float)
-    out = np.empty_like(points)
-    prev = dprev = None
-    a_d = _alpha(d_cutoff, fps)
-    for t, x in enumerate(points):
-        if prev is None or np.isnan(x).any():
-            prev, dprev = (None, None) if np.isnan(x).any() else (x, np.zeros_like(x))
-            out[t] = x
-            continue
-        dx = a_d * (x - prev) * fps + (1 - a_d) * dprev
-        a = _alpha(min_cutoff + beta * np.abs(dx), fps)
-        prev, dprev = a * x + (1 - a) * prev, dx
-        out[t] = prev
-    return out
+
+    def __init__(self, fps: float, *, min_cutoff: float = 1.0, beta: float = 0.05, d_cutoff: float = 1.0):
+        self.fps, self.min_cutoff, self.beta = float(fps), min_cutoff, beta
+        self._a_d = _alpha(d_cutoff, self.fps)
+        self._x = self._dx = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Filter one sample (any shape); returns the filtered sample."""
+        x = np.asarray(x, dtype=float)
+        if np.isnan(x).any():
+            self._x = self._dx = None
+            return x
+        if self._x is None:
+            self._x, self._dx = x, np.zeros_like(x)
+            return x
+        self._dx = self._a_d * (x - self._x) * self.fps + (1 - self._a_d) * self._dx
+        a = _alpha(self.min_cutoff + self.beta * np.abs(self._dx), self.fps)
+        self._x = a * x + (1 - a) * self._x
+        return self._x
+
+
+def one_euro(points: np.ndarray, fps: float, *, min_cutoff: float = 1.0, beta: float = 0.05,
+             d_cutoff: float = 1.0) -> np.ndarray:
+    """:class:`OneEuro` over a whole sequence ``(n_frames, ...)``; returns the filtered copy."""
+    step = OneEuro(fps, min_cutoff=min_cutoff, beta=beta, d_cutoff=d_cutoff)
+    return np.stack([step(x) for x in np.asarray(points, dtype=float)])

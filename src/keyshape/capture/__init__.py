@@ -80,9 +80,13 @@ def _nan_frame() -> _Frame:
 
 
 def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, start: int,
-            end: int | None, fps: float | None, face: int, progress: bool) -> Iterator[_Frame]:
+            end: int | None, fps: float | None, face: int, progress: bool,
+            one_euro: dict | None = None) -> Iterator[_Frame]:
     from tqdm import tqdm
 
+    from ..filters import OneEuro
+
+    smooth = OneEuro(info.fps, **one_euro) if one_euro is not None else None
     options = options or TrackerOptions()
     if face > 0 and options.num_faces < face + 2:  # see the others too, so we can tell them apart
         options = TrackerOptions(options.model_path, face + 2, options.min_detection_confidence,
@@ -96,9 +100,12 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
                             dynamic_ncols=True):
             chosen = follower.pick(tracker.detect(rgb, ms))
             if chosen is None or len(chosen.scores) != N_SCORES:
+                if smooth is not None:
+                    smooth(np.full(1, np.nan))  # a gap restarts the filter
                 yield _nan_frame()
             else:
-                yield _Frame(chosen.points.astype(np.float32), chosen.scores.astype(np.float32),
+                points = smooth(chosen.points) if smooth is not None else chosen.points
+                yield _Frame(points.astype(np.float32), chosen.scores.astype(np.float32),
                              chosen.matrix.astype(np.float32))
 
 
@@ -142,13 +149,14 @@ class _Spool:
                                 shape=(self.n_frames, *shape)) for name, shape in shapes.items()}
 
 
-def _spool(path, *, options, start, end, fps, face, progress, folder: Path) -> tuple[_Spool, VideoInfo]:
+def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
+           one_euro: dict | None = None) -> tuple[_Spool, VideoInfo]:
     _check_range(start, end)
     path = Path(path)
     info = probe(path, fps=fps)
     with _Spool(folder) as spool:
         for frame in _frames(path, info, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress):
+                             progress=progress, one_euro=one_euro):
             spool.append(frame)
     if spool.n_faces == 0:
         raise NoFaceError(f"{path}: no face found in any of its {spool.n_frames} frames")
@@ -157,7 +165,7 @@ def _spool(path, *, options, start, end, fps, face, progress, folder: Path) -> t
 
 def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,
                 end: int | None = None, fps: float | None = None, face: int = 0,
-                progress: bool = True) -> Track:
+                one_euro: dict | None = None, progress: bool = True) -> Track:
     """Track one face in every frame of a video file or a folder of images.
 
     Parameters
@@ -167,6 +175,9 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
     start, end : frame range ``start <= i < end`` (``end=None``: to the last frame)
     fps : frame rate override (image folders default to 30)
     face : which person to follow when several are visible: 0 = the largest face at the start
+    one_euro : None (default), or the settings of a causal One Euro filter on the landmarks
+        (``{}`` for the defaults; see :class:`keyshape.filters.OneEuro`) for live-like use.
+        Offline, the default zero-lag smoothing of the solve is the better choice.
     progress : show a progress bar with frames/s and ETA on stderr
 
     Returns
@@ -180,7 +191,7 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
     """
     with tempfile.TemporaryDirectory(prefix="keyshape-track-") as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=Path(tmp))
+                             progress=progress, folder=Path(tmp), one_euro=one_euro)
         arrays = spool.arrays()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
                       _blendshape_names(), arrays["matrix"])
@@ -190,7 +201,7 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
 
 def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptions | None = None,
                   start: int = 0, end: int | None = None, fps: float | None = None, face: int = 0,
-                  progress: bool = True) -> dict:
+                  one_euro: dict | None = None, progress: bool = True) -> dict:
     """Track a video straight into a track file; memory use does not grow with its length.
 
     Same parameters as :func:`track_video`. Returns a summary dict: ``n_frames``,
@@ -201,7 +212,7 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
     output = Path(output)
     with tempfile.TemporaryDirectory(prefix="keyshape-track-", dir=output.parent if output.parent.exists() else None) as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=Path(tmp))
+                             progress=progress, folder=Path(tmp), one_euro=one_euro)
         arrays = spool.arrays()
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],
