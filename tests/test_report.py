@@ -191,3 +191,11 @@ def test_demo_take_end_to_end(tmp_path):
     panel = slice(frames[0].shape[1] - height, None)
     a, b = frames[keys.neutral_frame][:height, panel], frames[strong][:height, panel]
     assert (np.abs(a.astype(int) - b).sum(axis=2) > 30).mean() > 0.01
+
+
+def test_report_can_embed_the_video(extras):
+    folder, _ = extras
+    result = write_take_extras(folder, progress=False, preview=False, embed_video=True)
+    text = result.report.read_text(encoding="utf-8")
+    video = re.search(r'<video[^>]+src="data:video/mp4;base64,([^"]+)"', text).group(1)
+    assert base64.b64decode(video) == (folder / "preview.mp4").read_bytes()

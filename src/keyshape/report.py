@@ -324,7 +324,8 @@ class TakeExtras:
 
 
 def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, backend: str = "auto",
-                      k_table: dict | None = None, tolerance: float = HULL_TOLERANCE) -> TakeExtras:
+                      k_table: dict | None = None, tolerance: float = HULL_TOLERANCE,
+                      embed_video: bool = False) -> TakeExtras:
     """Write ``preview.mp4``, the PNGs and ``report.html`` into an output folder of ``keyshape run``.
 
     Parameters
@@ -342,6 +343,8 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
         errors in % of the inter-ocular distance; default: ``error_vs_k.json`` in ``outdir`` if present.
     tolerance : float, keyword-only
         See :func:`fit_quality`.
+    embed_video : bool, keyword-only
+        Embed the preview in ``report.html`` (base64) instead of linking ``preview.mp4`` beside it.
 
     Returns
     -------
@@ -361,8 +364,14 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
         notes.append(f"No preview: {take.info['files'].get('animation', 'animation.glb')} is missing.")
     report = write_report(outdir / "report.html", numbers, take.keys, title=f"keyshape · {take.name}",
                           images={_CAPTIONS[k]: p for k, p in pictures.items()},
-                          video=movie.name if movie else None, notes=notes)
+                          video=_video_source(movie, embed_video), notes=notes)
     return TakeExtras(report, movie, pictures, numbers)
+
+
+def _video_source(movie: Path | None, embed: bool) -> str | None:
+    if movie is None:
+        return None
+    return _data_uri(movie, "video/mp4") if embed else movie.name
 
 
 _CAPTIONS = {"keyshapes": "Key shapes: the sculpt list", "weights": "Weights over time and fit error",
