@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from keyshape.containers import KeyShapes, Track
-from keyshape.decompose import solve_nnls, solve_weights
+from keyshape.decompose import solve_nnls, solve_spacetime, solve_weights
 from keyshape.exceptions import InputError
 
 # --------------------------------------------------------------------------- helpers
@@ -247,3 +247,158 @@ def test_solve_weights_rejects_mismatched_track():
         solve_weights(Track(np.zeros((3, 9, 3)), fps=30.0), keys)
     with pytest.raises(InputError, match="smoothness must be"):
         solve_weights(Track(np.zeros((3, 10, 3)), fps=30.0), keys, smoothness=-1.0)
+
+
+# --------------------------------------------------------------------------- spacetime
+
+
+def smooth_problem(seed=0, n_frames=600, m=45, k=6, noise=0.6, gaps=()):
+    """Smooth true weight curves in ``[0, 1]`` (many exact zeros), noisy frames, optional gaps."""
+    from scipy.ndimage import gaussian_filter1d
+
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((m, k))
+    Z = gaussian_filter1d(rng.standard_normal((n_frames, k)), 8.0, axis=0)
+    W = np.clip(Z / Z.std(axis=0) * 0.5, 0.0, 1.0)
+    B = W @ A.T + noise * rng.standard_normal((n_frames, m))
+    for start, stop in gaps:
+        B[start:stop] = np.nan
+    return A, W, B
+
+
+def objective(A, B, W, smoothness):
+    """``Σ_valid ‖A w_t − b_t‖² + μ Σ ‖Δ² w‖²`` with ``μ = smoothness · trace(AᵀA) / K``."""
+    valid = np.isfinite(B).all(axis=1)
+    r = (W @ A.T - B)[valid]
+    d = W[:-2] - 2 * W[1:-1] + W[2:]
+    return float(np.sum(r * r) + smoothness * np.trace(A.T @ A) / A.shape[1] * np.sum(d * d))
+
+
+def spacetime_reference(A, B, smoothness, upper=None, convex=False):
+    """The whole sequence as one sparse QP, solved by Clarabel (tests only)."""
+    qpsolvers = pytest.importorskip("qpsolvers")
+    from scipy import sparse
+
+    n, k = B.shape[0], A.shape[1]
+    valid = np.isfinite(B).all(axis=1)
+    G = A.T @ A
+    L = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n))
+    P = sparse.kron(sparse.diags(valid * 1.0), G) + smoothness * np.trace(G) / k * sparse.kron(
+        L.T @ L, sparse.eye(k)
+    )
+    q = -(np.where(valid[:, None], B, 0.0) @ A).ravel()
+    ub = None if upper is None else np.full(n * k, float(upper))
+    Gc, h = (sparse.kron(sparse.eye(n), np.ones((1, k))).tocsc(), np.ones(n)) if convex else (None, None)
+    x = qpsolvers.solve_qp(
+        sparse.csc_matrix(2 * P), 2 * q, G=Gc, h=h, lb=np.zeros(n * k), ub=ub, solver="clarabel",
+        tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10,
+    )
+    return x.reshape(n, k)
+
+
+def jitter(W):
+    return float(np.mean(np.abs(W[:-2] - 2 * W[1:-1] + W[2:])))
+
+
+def test_zero_smoothness_is_per_frame_nnls():
+    A, _, B = smooth_problem(1, n_frames=80)
+    B[[4, 50]] = np.nan
+    np.testing.assert_array_equal(solve_spacetime(A, B, smoothness=0.0), solve_nnls(A, B))
+
+
+@pytest.mark.parametrize(
+    ("upper", "convex", "gaps"),
+    [(None, False, ()), (1.0, False, [(20, 26)]), (0.4, False, ()), (None, True, [(5, 7), (40, 52)]),
+     (0.6, True, ())],
+)
+@pytest.mark.parametrize("smoothness", [0.05, 1.0, 30.0])
+def test_spacetime_matches_clarabel(upper, convex, gaps, smoothness):
+    A, _, B = smooth_problem(2, n_frames=90, m=20, k=5, noise=0.4, gaps=gaps)
+    B *= 1.5  # let the bounds bite
+    W = solve_spacetime(A, B, smoothness=smoothness, upper=upper, convex=convex)
+    assert np.isfinite(W).all() and (W >= 0).all()
+    if upper is not None:
+        assert (W <= upper).all()
+    if convex:
+        assert (W.sum(axis=1) <= 1.0).all()
+    R = spacetime_reference(A, B, smoothness, upper, convex)
+    ours, theirs = objective(A, B, W, smoothness), objective(A, B, R, smoothness)
+    assert ours <= theirs * (1 + 1e-6)
+    assert theirs <= ours * (1 + 1e-6)  # Clarabel's own accuracy
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    k=st.integers(1, 8),
+    n_frames=st.integers(3, 60),
+    smoothness=st.floats(1e-3, 1e2),
+    upper=st.sampled_from([None, 1.0, 0.5]),
+    convex=st.booleans(),
+)
+def test_spacetime_random_problems_match_clarabel(seed, k, n_frames, smoothness, upper, convex):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((k + 8, k))
+    W_true = np.clip(np.cumsum(rng.standard_normal((n_frames, k)) * 0.2, axis=0), 0.0, None)
+    B = W_true @ A.T + 0.3 * rng.standard_normal((n_frames, k + 8))
+    B[1:-1][rng.random(n_frames - 2) < 0.15] = np.nan
+    W = solve_spacetime(A, B, smoothness=smoothness, upper=upper, convex=convex)
+    assert (W >= 0).all() and (upper is None or (W <= upper).all())
+    assert not convex or (W.sum(axis=1) <= 1.0).all()
+    ours = objective(A, B, W, smoothness)
+    R = spacetime_reference(A, B, smoothness, upper, convex)
+    assert ours <= objective(A, B, R, smoothness) * (1 + 1e-6)
+
+
+def test_smoothing_beats_per_frame_on_noisy_truth():
+    A, W_true, B = smooth_problem(3, n_frames=800)
+    raw = solve_nnls(A, B)
+    smooth = solve_spacetime(A, B, smoothness=2.0, upper=1.0)
+    assert np.abs(smooth - W_true).mean() < 0.7 * np.abs(raw - W_true).mean()
+    assert jitter(smooth) <= 0.5 * jitter(raw)
+    assert (smooth >= 0).all() and (smooth <= 1.0).all()
+
+
+def test_smoothing_has_no_lag():
+    A, W_true, B = smooth_problem(4, n_frames=1000)
+    W = solve_spacetime(A, B, smoothness=2.0)
+    lags = np.arange(-6, 7)
+    for key in range(A.shape[1]):
+        x, y = W_true[:, key] - W_true[:, key].mean(), W[:, key] - W[:, key].mean()
+        corr = [np.dot(x[max(0, -lag) : len(x) - max(0, lag)], y[max(0, lag) : len(y) - max(0, -lag)])
+                for lag in lags]
+        assert lags[int(np.argmax(corr))] == 0
+
+
+def test_gaps_are_bridged_and_ends_not_extrapolated():
+    A, W_true, B = smooth_problem(5, n_frames=400, noise=0.3, gaps=[(0, 10), (100, 112), (390, 400)])
+    W = solve_spacetime(A, B, smoothness=1.0, upper=1.0)
+    assert np.isnan(W[:10]).all() and np.isnan(W[390:]).all()
+    assert np.isfinite(W[10:390]).all()
+    gap = slice(100, 112)
+    assert np.abs(W[gap] - W_true[gap]).mean() < 0.1
+    assert (W[10:390] >= 0).all() and (W[10:390] <= 1.0).all()
+
+
+def test_convex_and_bounds_hold_exactly_when_smoothing():
+    A, _, B = smooth_problem(6, n_frames=300, noise=0.5)
+    W = solve_spacetime(A, 3.0 * B, smoothness=0.5, upper=0.7, convex=True)
+    assert W.max() <= 0.7 and W.min() >= 0.0
+    assert (W.sum(axis=1) <= 1.0).all()
+
+
+def test_solve_weights_with_smoothness_bridges_missing_faces():
+    rng = np.random.default_rng(14)
+    keys = two_region_keys(rng)
+    from scipy.ndimage import gaussian_filter1d
+
+    W_true = np.clip(gaussian_filter1d(rng.standard_normal((200, 7)), 6.0, axis=0) * 3.0, 0.0, 1.0)
+    points = keys.pose(W_true) + 0.05 * rng.standard_normal((200, 10, 3))
+    points[50:55] = np.nan
+    weights = solve_weights(Track(points, fps=30.0), keys, smoothness=0.5, upper=1.0)
+    assert weights.names == keys.names
+    assert np.isfinite(weights.values).all()
+    assert np.abs(weights.values[50:55] - W_true[50:55]).mean() < 0.1
+    raw = solve_weights(Track(points, fps=30.0), keys, upper=1.0).values
+    assert np.isnan(raw[50:55]).all()
+    assert jitter(weights.values) < jitter(raw[:50])
