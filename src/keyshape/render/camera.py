@@ -166,9 +166,11 @@ class NormalEstimator:
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:
-    length = np.linalg.norm(vectors, axis=1, keepdims=True)
-    out = np.divide(vectors, length, out=np.zeros_like(vectors), where=length > 1e-20)
-    out[length[:, 0] <= 1e-20] = (0.0, 0.0, 1.0)
+    length = np.sqrt(np.einsum("ij,ij->i", vectors, vectors))
+    out = vectors / np.maximum(length, 1e-30)[:, None]
+    flat = length <= 1e-20
+    if flat.any():
+        out[flat] = (0.0, 0.0, 1.0)
     return out
 
 
