@@ -456,7 +456,7 @@ def _read_k_table(path: Path) -> dict | None:
 
 
 def write_take_preview(outdir, path=None, *, progress: bool = True, backend: str = "auto",
-                       height: int = 480) -> Path:
+                       height: int | None = None) -> Path:
     """Render the preview video of an output folder of ``keyshape run``.
 
     Parameters
@@ -480,7 +480,7 @@ def write_take_preview(outdir, path=None, *, progress: bool = True, backend: str
 
 
 def _preview(outdir: Path, take: _Take, *, path=None, progress: bool, backend: str,
-             height: int = 480) -> Path | None:
+             height: int | None = None) -> Path | None:
     from .io.gltf import read_glb_animation, read_rig
     from .render.preview import render_preview, rotations_from_quaternions
 

@@ -17,8 +17,8 @@ def add_arguments(p) -> None:
     p.add_argument("outdir", type=Path, help="output folder of `keyshape run` (holds take.json)")
     p.add_argument("-o", "--output", type=Path, default=None, metavar="PREVIEW.mp4",
                    help="default: OUTDIR/preview.mp4")
-    p.add_argument("--height", type=int, default=480, metavar="PX",
-                   help="height of the picture row in pixels (default 480)")
+    p.add_argument("--height", type=int, default=None, metavar="PX",
+                   help="height of the picture row in pixels (default: the video's, kept within 360-720)")
     p.add_argument("--backend", choices=("auto", "gl", "numpy"), default="auto",
                    help="renderer: auto (OpenGL, numpy if unavailable; default), gl or numpy")
 
@@ -27,7 +27,7 @@ def run(args) -> None:
     from ..exceptions import InputError
     from ..report import write_take_preview
 
-    if not 64 <= args.height <= 4096:
+    if args.height is not None and not 64 <= args.height <= 4096:
         raise InputError(f"--height must be between 64 and 4096 pixels; got {args.height}")
     path = write_take_preview(args.outdir, args.output, progress=not args.quiet, backend=args.backend,
                               height=args.height)

@@ -6,7 +6,7 @@ are ``(height, width, 3) uint8`` arrays in and out.
 
 from __future__ import annotations
 
-from functools import cache
+from functools import cache, lru_cache
 
 import numpy as np
 
@@ -72,35 +72,47 @@ def draw_landmarks(image: np.ndarray, points: np.ndarray, colours: np.ndarray, *
     points : (n_landmarks, 2) float, pixels of ``image``; a NaN frame draws nothing
     colours : (n_landmarks, 3) uint8
     edges : (n_edges, 2) int, optional, keyword-only
-        Contour segments, drawn in the colour of their first landmark.
+        Contour segments, drawn one pixel wide in the colour of their first landmark.
     radius : float or (n_landmarks,) float, keyword-only
         Dot radius in pixels.
+
+    Examples
+    --------
+    >>> out = draw_landmarks(np.zeros((5, 9, 3), np.uint8), np.array([[1.0, 2], [7, 2]]),
+    ...                      np.full((2, 3), 255, np.uint8), edges=np.array([[0, 1]]), radius=0)
+    >>> out[2, :, 0]
+    array([  0, 255, 255, 255, 255, 255, 255, 255,   0], dtype=uint8)
     """
+    out = np.array(image, dtype=np.uint8, copy=True)
     if not np.isfinite(points).all():
-        return image.copy()
-    out = image
+        return out
     if edges is not None and len(edges):
-        image_mod, image_draw, _ = _pil()
-        canvas = image_mod.fromarray(np.ascontiguousarray(image))
-        pen = image_draw.Draw(canvas)
-        for (i, j), colour in zip(edges.tolist(), colours[edges[:, 0]].tolist()):
-            pen.line([tuple(points[i]), tuple(points[j])], fill=tuple(colour), width=1)
-        out = np.asarray(canvas)
-    out = out.copy() if out is image else np.array(out)
+        _segments(out, points[edges[:, 0]], points[edges[:, 1]], colours[edges[:, 0]])
     radii = np.broadcast_to(np.asarray(radius, dtype=float), (len(points),))
     for r in np.unique(radii):
         _dots(out, points[radii == r], colours[radii == r], float(r))
     return out
 
 
-def _dots(image: np.ndarray, points: np.ndarray, colours: np.ndarray, radius: float) -> np.ndarray:
-    """Filled discs stamped at ``points`` (in place; returns ``image``)."""
+def _stamp(image: np.ndarray, xy: np.ndarray, colours: np.ndarray) -> None:
+    """Set the pixels ``xy (n, 2) int`` (x, y) that fall inside ``image`` to ``colours (n, 3)``."""
+    inside = ((xy >= 0) & (xy < (image.shape[1], image.shape[0]))).all(axis=1)
+    image[xy[inside, 1], xy[inside, 0]] = colours[inside]
+
+
+def _segments(image: np.ndarray, starts: np.ndarray, ends: np.ndarray, colours: np.ndarray) -> None:
+    """One-pixel lines ``starts[i] → ends[i]`` (in place), sampled once per pixel of length."""
+    steps = int(min(np.ceil(np.abs(ends - starts).max(initial=0.0)), 4096)) + 1
+    t = np.linspace(0.0, 1.0, steps)[None, :, None]
+    xy = np.round(starts[:, None] + t * (ends - starts)[:, None]).astype(np.int64)  # (n, steps, 2)
+    _stamp(image, xy.reshape(-1, 2), np.repeat(colours, steps, axis=0))
+
+
+def _dots(image: np.ndarray, points: np.ndarray, colours: np.ndarray, radius: float) -> None:
+    """Filled discs stamped at ``points`` (in place)."""
     offsets = _disc(radius)  # (n_offsets, 2) as (dx, dy)
     xy = np.round(points).astype(np.int64)[:, None, :] + offsets[None]  # (n_points, n_offsets, 2)
-    inside = ((xy >= 0) & (xy < (image.shape[1], image.shape[0]))).all(axis=2)
-    which = np.broadcast_to(np.arange(len(points))[:, None], inside.shape)[inside]
-    image[xy[inside][:, 1], xy[inside][:, 0]] = colours[which]
-    return image
+    _stamp(image, xy.reshape(-1, 2), np.repeat(colours, len(offsets), axis=0))
 
 
 @cache
@@ -112,13 +124,24 @@ def _disc(radius: float) -> np.ndarray:
 
 
 def caption(image: np.ndarray, text: str, *, xy=(8, 6), size: int = 14) -> np.ndarray:
-    """``text`` written (white on a dark box) at ``xy`` on a copy of ``image``."""
+    """``text`` written (white on a black box) at ``xy`` on a copy of ``image``."""
+    out = np.array(image, dtype=np.uint8, copy=True)
+    patch = _text_patch(text, size)
+    x, y = xy[0] - 4, xy[1] - 3
+    h, w = min(patch.shape[0], out.shape[0] - y), min(patch.shape[1], out.shape[1] - x)
+    if h > 0 and w > 0:
+        out[y:y + h, x:x + w] = patch[:h, :w]
+    return out
+
+
+@lru_cache(maxsize=64)
+def _text_patch(text: str, size: int) -> np.ndarray:
+    """(h, w, 3) uint8: ``text`` in white on black with a 4 × 3 pixel margin."""
     image_mod, image_draw, _ = _pil()
-    canvas = image_mod.fromarray(np.ascontiguousarray(image))
-    pen = image_draw.Draw(canvas)
-    box = pen.textbbox(xy, text, font=_font(size))
-    pen.rectangle([box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3], fill=(0, 0, 0))
-    pen.text(xy, text, fill=(255, 255, 255), font=_font(size))
+    font = _font(size)
+    left, top, right, bottom = image_draw.Draw(image_mod.new("RGB", (1, 1))).textbbox((0, 0), text, font=font)
+    canvas = image_mod.new("RGB", (right + 8, bottom + 6), (0, 0, 0))
+    image_draw.Draw(canvas).text((4, 3), text, fill=(255, 255, 255), font=font)
     return np.asarray(canvas)
 
 

@@ -56,7 +56,7 @@ def rotations_from_quaternions(quaternions: np.ndarray) -> np.ndarray:
 
 def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None,
                    keys: KeyShapes | None = None, rig_weights: np.ndarray | None = None,
-                   rotations: np.ndarray | None = None, height: int = 480, strip_height: int = 96,
+                   rotations: np.ndarray | None = None, height: int | None = None, strip_height: int = 96,
                    backend: str = "auto", progress: bool = False) -> Path:
     """Write the preview MP4: source + landmarks | character, over a strip of the weights.
 
@@ -78,8 +78,9 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
         What drives the rig; default ``weights.values``, whose names must then be the rig's targets.
     rotations : (n_frames, 3, 3) float, optional, keyword-only
         Head rotations in glTF axes (see :func:`head_rotations`); NaN frames hold the last one.
-    height : int, keyword-only
-        Height of the picture row (the character panel is square).
+    height : int, optional, keyword-only
+        Height of the picture row (the character panel is square); default the source video's
+        height, kept between 360 and 720 pixels.
     strip_height : int, keyword-only
     backend : "auto", "gl" or "numpy", keyword-only
         See :func:`keyshape.render.make_renderer`.
@@ -91,20 +92,23 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     """
     driving = _check_inputs(track, weights, rig, rig_weights, rotations)
     rotations = _hold_rotations(rotations, track.n_frames)
-    height = _even(height)
+    source_height = _image_height(track, video)
+    height = _even(np.clip(source_height, 360, 720) if height is None else height)
     sources = _source_frames(video, track, height)
     first = next(sources)
-    width = first.shape[1] + height
+    split, width = first.shape[1], first.shape[1] + height
     strip = WeightStrip(weights.names, _channel_colours(weights.names, keys), width, _even(strip_height))
-    overlay = _LandmarkOverlay(track, keys, scale=first.shape[0] / _image_height(track, video))
+    overlay = _LandmarkOverlay(track, keys, scale=first.shape[0] / source_height)
+    canvas = np.zeros((height + strip.height, width, 3), np.uint8)
     with atomic_path(path) as tmp:
         with _CharacterView(rig, driving, rotations, height, backend) as character, \
                 VideoWriter(tmp, width, height + strip.height, track.fps) as out:
             frames = _with_first(first, sources)
             for index, source in _progress(enumerate(frames), track.n_frames, progress):
-                left = overlay(source, index)
-                picture = np.hstack([left, character(index)])
-                out.write(np.vstack([picture, strip.draw(weights.values[index])]))
+                canvas[:height, :split] = overlay(source, index)
+                canvas[:height, split:] = character(index)
+                canvas[height:] = strip.draw(weights.values[index])
+                out.write(canvas)
     return Path(path)
 
 
