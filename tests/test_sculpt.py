@@ -166,6 +166,20 @@ def test_round_trip_on_the_robot(take, tmp_path):
     np.testing.assert_allclose(load_rig(out).pose(anim.weights), sculpted_rig.pose(weights.values), atol=1e-5)
 
 
+def test_kit_from_a_usd_character(take, head_obj, tmp_path):
+    pytest.importorskip("pxr", reason="usd-core not installed")
+    from keyshape.io.usd import write_usd
+
+    keys, track, video = take
+    neutral = load_rig(head_obj, unit=0.01)
+    with_targets = Rig(neutral.vertices, neutral.faces, np.ones((1, neutral.n_vertices, 3)) * 0.01, ("smile",))
+    usd = write_usd(tmp_path / "hero.usda", with_targets, Weights(np.zeros((1, 1)), ("smile",), 24))
+    kit = write_sculpt_kit(keys, usd, tmp_path / "kit", track=track, video=video)
+    rig = load_rig(kit.glb)
+    assert rig.names == keys.names and not rig.deltas.any()  # the character's own shapes are not carried over
+    np.testing.assert_allclose(rig.vertices, neutral.vertices, atol=1e-7)
+
+
 def test_sculpt_command(take, head_obj, tmp_path, capsys):
     keys, track, video = take
     folder = tmp_path / "run"

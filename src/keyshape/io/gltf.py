@@ -302,6 +302,8 @@ def _performance(document, blob, meshes, weights, poses, head, source) -> pygltf
     times = _times(blob, weights)
     outputs, by_mesh = [], {}
     nodes = edit.morph_nodes(document, meshes)
+    if not nodes:
+        raise RigError(f"{str(source)!r}: no node shows the meshes with morph targets; nothing to animate")
     for node in nodes:
         mesh = document.nodes[node].mesh
         if mesh not in by_mesh:
