@@ -164,3 +164,21 @@ def test_run_on_a_2d_track_from_another_tool(demo_out, tmp_path):
     assert main(["keys", str(path), "-o", str(keys), "--regions", "whole", "--count", "4", "-q"]) == 0
     assert main(["solve", str(path), str(keys), "-o", str(tmp_path / "w.csv"), "-q"]) == 0
     assert load_weights_csv(tmp_path / "w.csv").n_channels == 4
+
+
+def test_solve_options(demo_out, tmp_path):
+    track, keys = demo_out / "track.npz", demo_out / "keys.json"
+    runs = {"default": [], "paper": ["--smooth", "0", "--max", "none"], "convex": ["--convex"]}
+    got = {}
+    for name, extra in runs.items():
+        out = tmp_path / f"{name}.csv"
+        assert main(["solve", str(track), str(keys), "-o", str(out), "-q", *extra]) == 0
+        got[name] = load_weights_csv(out).values
+    assert got["default"].min() >= 0 and got["default"].max() <= 1 + 1e-9
+    jitter = {k: np.abs(np.diff(v, 2, axis=0)).mean() for k, v in got.items()}
+    assert jitter["default"] < 0.6 * jitter["paper"]  # zero-lag smoothing by default
+    k = load_keys(keys)
+    for region in k.regions:
+        sums = got["convex"][:, k.keys_of(region)].sum(axis=1)
+        assert sums.max() <= 1 + 1e-9
+    assert main(["solve", str(track), str(keys), "-o", str(tmp_path / "x.csv"), "--max", "-1"]) == 2

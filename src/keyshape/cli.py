@@ -13,6 +13,7 @@ from pathlib import Path
 
 from . import __version__
 from .commands import discover
+from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from .exceptions import InputError, KeyshapeError
 
 DEMO_CLIP = "data/WolfgangLanger_Pexels.mp4"
@@ -81,6 +82,43 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
                         "MediaPipe's video mode already smooths")
 
 
+def _upper(text: str) -> float | None:
+    if text.lower() in ("none", "inf", "off"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number or 'none'; got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0; got {value}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number; got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0; got {value}")
+    return value
+
+
+def _add_solve_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--smooth", type=_non_negative, default=DEFAULT_SMOOTHNESS, metavar="LAMBDA",
+                   help=f"temporal smoothness, solved over the whole take with no lag (default "
+                        f"{DEFAULT_SMOOTHNESS}; 0 = the paper's per-frame NNLS). Short gaps without a "
+                        f"face are bridged, longer ones (> 0.5 s) hold the neutral")
+    p.add_argument("--max", type=_upper, default=DEFAULT_UPPER, metavar="U",
+                   help=f"upper bound of every weight (default {DEFAULT_UPPER:g}; 'none' lifts it)")
+    p.add_argument("--convex", action="store_true",
+                   help="also require the weights of each region to sum to at most 1")
+
+
+def _solve_kwargs(args) -> dict:
+    return {"smoothness": args.smooth, "upper": args.max, "convex": args.convex}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="keyshape", description=DESCRIPTION, epilog=EPILOG,
                                      formatter_class=_formatter)
@@ -118,6 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("track", type=Path, help="track file (.npz)")
     p.add_argument("keys", type=Path, help="key file from `keyshape keys`")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="WEIGHTS.csv")
+    _add_solve_options(p)
 
     modules = discover()
     extra = ([m for m in modules if m.VERB in STAGE_VERBS], [m for m in modules if m.VERB not in STAGE_VERBS])
@@ -134,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     _add_key_options(p)
+    _add_solve_options(p)
     p.add_argument("--no-preview", action="store_true",
                    help="skip the side-by-side preview video (pictures and report are still written)")
 
@@ -223,9 +263,10 @@ def cmd_solve(args) -> None:
 
     track = load_track(args.track)
     keys = load_keys(args.keys)
-    solved = solve_take(track, keys)
+    solved = solve_take(track, keys, **_solve_kwargs(args))
     save_weights_csv(solved.weights, args.output)
-    _say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys")
+    _say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys; "
+               f"{solved.gaps}")
 
 
 def _run(args, video: Path) -> None:
@@ -244,7 +285,7 @@ def _run(args, video: Path) -> None:
     track = track_video(video, progress=_progress(args), **_capture_kwargs(args))
     keys = discover_keys(track, regions=args.regions, n_keys=args.count, method=args.method,
                          neutral=args.neutral, take=video.name)
-    solved = solve_take(track, keys)
+    solved = solve_take(track, keys, **_solve_kwargs(args))
     rig = load_rig(args.rig) if args.rig is not None else default_character(keys)
     anim = retarget(solved.weights, Mapping.by_name(keys.names, rig.names))
     out = args.output
@@ -257,6 +298,7 @@ def _run(args, video: Path) -> None:
     _say(args, f"{video.name}: {track.n_frames} frames, face in {100 * track.valid.mean():.1f} %, "
                f"neutral frame {keys.neutral_frame}")
     _say(args, f"keys: {_describe_keys(keys)}")
+    _say(args, f"gaps: {solved.gaps}")
     shown = ", ".join(p.name for p in [extras.preview, *extras.pictures.values(), extras.report] if p)
     _say(args, f"wrote {out}/track.npz, keys.json, weights.csv, animation.glb, take.json, {shown} "
                f"in {time.perf_counter() - start:.1f} s")
@@ -270,7 +312,7 @@ def cmd_run(args) -> None:
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
     args.start, args.end, args.fps, args.face, args.no_preview = 0, None, None, 0, False
-    args.one_euro = None
+    args.one_euro, args.smooth, args.max, args.convex = None, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, False
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))
     _run(args, clip)
 

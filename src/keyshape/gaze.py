@@ -54,14 +54,16 @@ def _eye_offsets(points: np.ndarray, eye: str) -> tuple[np.ndarray, np.ndarray, 
     return np.einsum("fi,fi->f", d, u), np.einsum("fi,fi->f", d, v), width
 
 
-def estimate_gaze(points: np.ndarray, *, neutral_frame: int | None = None) -> Gaze:
+def estimate_gaze(points: np.ndarray, *, neutral_frame: int | None = None,
+                  reference: np.ndarray | None = None) -> Gaze:
     """Yaw and pitch of each eye from MediaPipe's 478 landmarks.
 
     Parameters
     ----------
     points : (n_frames, 478, 2 or 3) float, head-aligned (see :func:`keyshape.align.align`)
-    neutral_frame : frame whose gaze is taken as straight ahead (None: offsets from the corner
-        midpoint are used as they are)
+    neutral_frame : frame whose gaze is taken as straight ahead
+    reference : (478, 2 or 3) float, a neutral shape whose gaze is straight ahead (e.g. the key
+        set's neutral); with neither, offsets from the corner midpoint are used as they are
 
     Returns
     -------
@@ -70,11 +72,14 @@ def estimate_gaze(points: np.ndarray, *, neutral_frame: int | None = None) -> Ga
     points = np.asarray(points, dtype=float)
     if points.ndim != 3 or points.shape[1] != 478:
         raise InputError(f"gaze needs MediaPipe's 478 landmarks (with irises); got shape {points.shape}")
+    if neutral_frame is not None:
+        reference = points[neutral_frame]
     yaw, pitch = [], []
     for eye in ("right", "left"):
         du, dv, width = _eye_offsets(points, eye)
-        if neutral_frame is not None:
-            du, dv = du - du[neutral_frame], dv - dv[neutral_frame]
+        if reference is not None:
+            du0, dv0, _ = _eye_offsets(np.asarray(reference, dtype=float)[None], eye)
+            du, dv = du - du0, dv - dv0
         radius = EYEBALL_RATIO * width
         yaw.append(np.degrees(np.arcsin(np.clip(du / radius, -1, 1))))
         pitch.append(np.degrees(np.arcsin(np.clip(-dv / radius, -1, 1))))

@@ -13,10 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from .align import align, choose_neutral
 from .containers import KeyShapes, Poses, Rig, Track, Weights
 from .decompose import solve_weights
 from .exceptions import InputError
+from .filters import GapReport, gap_report, hold_neutral
+from .gaze import Gaze, estimate_gaze
 from .keyshapes import find_keyshapes
 from .schemes import face_triangles, resolve_regions, stable_points
 
@@ -87,17 +90,36 @@ def _split_takes(keys: KeyShapes, lengths: list[int], takes: list[str]) -> KeySh
 
 @dataclass(frozen=True)
 class Solved:
-    """A take decomposed on a key set: weights ``(n_frames, n_keys)`` and the head poses."""
+    """A take decomposed on a key set.
+
+    weights : Weights (n_frames, n_keys); poses : Poses (head); aligned : Track (head removed);
+    gaps : GapReport (frames without a face and what was done with them); gaze : Gaze or None
+    (per-eye yaw and pitch, MediaPipe tracks only)
+    """
 
     weights: Weights
     poses: Poses
     aligned: Track
+    gaps: GapReport
+    gaze: Gaze | None = None
 
 
-def solve_take(track: Track, keys: KeyShapes, **options) -> Solved:
+
+
+def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMOOTHNESS,
+               upper: float | None = DEFAULT_UPPER, convex: bool = False,
+               max_bridge: float = 0.5) -> Solved:
     """Align ``track`` onto the key set's neutral shape and solve the weights.
 
-    ``options`` go to :func:`keyshape.decompose.solve_weights`.
+    Parameters
+    ----------
+    track : Track in image coordinates, same landmarks as the key set
+    keys : KeyShapes
+    smoothness, upper, convex : see :func:`keyshape.decompose.solve_weights`. The default
+        is the zero-lag smoothed solve bounded to ``0 <= w <= 1``; ``smoothness=0, upper=None``
+        is the paper's per-frame NNLS.
+    max_bridge : seconds; with smoothing, gaps up to this long between faces are bridged by
+        the smooth solve, longer ones (and gaps at the ends) hold the neutral pose (weights 0)
     """
     if track.n_landmarks != keys.n_landmarks or track.n_dims != keys.n_dims:
         raise InputError(
@@ -106,7 +128,12 @@ def solve_take(track: Track, keys: KeyShapes, **options) -> Solved:
         )
     stable = keys.stable if keys.stable is not None else stable_points(track.n_landmarks)
     aligned, poses = align(track, reference=keys.neutral, stable=stable)
-    return Solved(solve_weights(aligned, keys, **options), poses, aligned)
+    weights = solve_weights(aligned, keys, upper=upper, smoothness=smoothness, convex=convex)
+    gaps = gap_report(track.valid, max_bridge=int(round(max_bridge * track.fps)))
+    if smoothness > 0 and gaps.held:
+        weights = Weights(hold_neutral(weights.values, gaps), weights.names, weights.fps)
+    gaze = estimate_gaze(aligned.points, reference=keys.neutral) if track.n_landmarks == 478 else None
+    return Solved(weights, poses, aligned, gaps, gaze)
 
 
 def head_poses(track: Track) -> Poses:
