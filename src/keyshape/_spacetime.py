@@ -261,25 +261,38 @@ def classify(seq: Sequence, Z: np.ndarray):
     return state, sums
 
 
-def face_band(seq: Sequence, free: np.ndarray, sums: np.ndarray, rho_s: float) -> np.ndarray:
-    """LAPACK lower band ``(2K + 1, T·K)`` of the face system, frame-major variables.
+def face_band(seq: Sequence, free: np.ndarray, sums: np.ndarray, rho_s: float, chunk: int = 4096):
+    """LAPACK lower band ``(2K + 1, T·K)`` (Fortran order) of the face system, frame-major.
 
     Free rows and columns hold ``P + ρ_s Σ_{active t} 1 1ᵀ``; fixed ones the identity.
-    ``band[o, t, j] = M[(t, j) + o, (t, j)]``: offsets ``o < K`` stay in frame ``t``, ``o = K``
-    and ``o = 2K`` reach the same key in frames ``t + 1`` and ``t + 2``.
+    ``band[o, (t, j)] = M[(t, j) + o, (t, j)]``: offsets ``o < K`` stay in frame ``t``, ``o = K``
+    and ``o = 2K`` reach the same key in frames ``t + 1`` and ``t + 2``. It is assembled in
+    chunks of frames, so the peak memory is the band itself.
     """
     T, K = free.shape
+    band = np.empty((2 * K + 1, T * K), order="F")
+    for lo in range(0, T, chunk):
+        hi = min(T, lo + chunk)
+        band[:, lo * K : hi * K] = _band_chunk(seq, free, sums, rho_s, lo, hi)
+    return band
+
+
+def _band_chunk(seq, free, sums, rho_s, lo, hi):
+    """Frames ``lo:hi`` of the band, ``(2K + 1, (hi − lo)·K)`` in C order."""
+    T, K = free.shape
     d0, d1, d2 = second_difference_gram(T)
-    band = np.zeros((2 * K + 1, T, K))
-    penalty = rho_s * sums[:, None]
+    f, n = free[lo : min(T, hi + 2)], hi - lo
+    band = np.zeros((2 * K + 1, n, K))
+    penalty = rho_s * sums[lo:hi, None]
     for o in range(K):
-        coupled = free[:, : K - o] & free[:, o:]
-        band[o, :, : K - o] = (seq.delta[:, None] * np.diagonal(seq.G, -o) + penalty) * coupled
-    band[0] += seq.mu * d0[:, None]
-    band[K, : T - 1] = seq.mu * d1[:, None] * (free[:-1] & free[1:])
-    band[2 * K, : T - 2] = seq.mu * d2[:, None] * (free[:-2] & free[2:])
-    band[0] = np.where(free, band[0], 1.0)
-    return band.reshape(2 * K + 1, T * K)
+        coupled = f[:n, : K - o] & f[:n, o:]
+        band[o, :, : K - o] = (seq.delta[lo:hi, None] * np.diagonal(seq.G, -o) + penalty) * coupled
+    band[0] += seq.mu * d0[lo:hi, None]
+    m1, m2 = min(n, T - 1 - lo), min(n, T - 2 - lo)  # frames with a successor (at 1, at 2)
+    band[K, :m1] = seq.mu * d1[lo : lo + m1, None] * (f[:m1] & f[1 : m1 + 1])
+    band[2 * K, :m2] = seq.mu * d2[lo : lo + m2, None] * (f[:m2] & f[2 : m2 + 2])
+    band[0] = np.where(f[:n], band[0], 1.0)
+    return band.reshape(2 * K + 1, n * K)
 
 
 def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray):
