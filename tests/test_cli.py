@@ -180,5 +180,5 @@ def test_solve_options(demo_out, tmp_path):
     k = load_keys(keys)
     for region in k.regions:
         sums = got["convex"][:, k.keys_of(region)].sum(axis=1)
-        assert sums.max() <= 1 + 1e-9
+        assert sums.max() <= 1 + 1e-5  # the CSV keeps 6 decimals
     assert main(["solve", str(track), str(keys), "-o", str(tmp_path / "x.csv"), "--max", "-1"]) == 2
