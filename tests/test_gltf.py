@@ -272,6 +272,7 @@ def test_target_names_on_the_first_primitive(rig, weights, tmp_path):
 from pathlib import Path  # noqa: E402
 
 from keyshape.io import _gltf_edit as edit  # noqa: E402
+from keyshape.io._gltf_read import read_accessor  # noqa: E402
 from keyshape.io.gltf import animate_gltf, read_meshes, write_gltf_targets  # noqa: E402
 
 ROBOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "robot-expressive" / "RobotExpressive.glb"
@@ -447,3 +448,37 @@ def test_new_targets_on_the_robot(tmp_path):
     assert len(document.animations) == 14  # the skeletal animations stay
     with pytest.raises(RigError, match="have 1742 vertices but the rig has 3"):
         write_gltf_targets(ROBOT, tmp_path / "bad.glb", Rig(np.eye(3), [[0, 1, 2]], np.ones((1, 3, 3)), ("x",)))
+
+
+def test_eye_nodes_turn_with_the_gaze(rig, weights, tmp_path):
+    source = write_glb(tmp_path / "face.glb", rig, Weights(np.zeros((0, 3)), rig.names, 30))
+    document = pygltflib.GLTF2().load(str(source))
+    rest = Rotation.from_euler("x", -90, degrees=True).as_quat().tolist()  # a bone axis convention
+    document.nodes += [pygltflib.Node(name="Head", children=[0, 2, 3], rotation=[0.0, 0.0, 0.3826834, 0.9238795]),
+                       pygltflib.Node(name="Eye.L", translation=[0.03, 0.05, 0.05], rotation=rest),
+                       pygltflib.Node(name="Eye.R", translation=[-0.03, 0.05, 0.05], rotation=rest),
+                       pygltflib.Node(name="eyelid_L")]
+    document.nodes[1].children.append(4)
+    document.scenes[0].nodes = [1]
+    document.save_binary(str(source))
+    n = weights.n_frames
+    look = np.stack([Rotation.from_euler("y", np.linspace(-15, 15, n)[:, None], degrees=True).as_matrix(),
+                     Rotation.from_euler("x", np.linspace(10, -10, n)[:, None], degrees=True).as_matrix()], axis=1)
+    out = animate_gltf(source, weights, tmp_path / "eyes.glb", poses=random_poses(n), eyes=look)
+    _clean(out)
+    written = pygltflib.GLTF2().load(str(out))
+    channels = [c for c in written.animations[0].channels if c.target.path == "rotation"]
+    assert [written.nodes[c.target.node].name for c in channels] == ["Head", "Eye.L", "Eye.R"]
+    for side, channel in enumerate(channels[1:]):
+        sampler = written.animations[0].samplers[channel.sampler]
+        quats = read_accessor(written, [written.binary_blob()], sampler.output)
+        parent = edit.world_rotation(document, 1)  # the eye's parent, the head, at rest
+        world = parent @ Rotation.from_quat(quats).as_matrix()
+        expected = (C @ look[:, side] @ C) @ parent @ Rotation.from_quat(rest).as_matrix()
+        np.testing.assert_allclose(world, expected, atol=1e-5)
+    with pytest.raises(InputError, match=r"eyes must have shape \(40, 2, 3, 3\)"):
+        animate_gltf(source, weights, tmp_path / "x.glb", eyes=look[:, :1])
+    plain = write_glb(tmp_path / "plain.glb", rig, Weights(np.zeros((0, 3)), rig.names, 30))
+    with pytest.raises(RigError, match="no eye nodes found"):
+        animate_gltf(plain, weights, tmp_path / "x.glb", eyes=look)
+    assert not (tmp_path / "x.glb").exists()

@@ -109,3 +109,15 @@ def test_reading_bad_files(tmp_path):
 
 def test_rotation_names():
     assert ROTATION_NAMES[:3] == ("HeadYaw", "HeadPitch", "HeadRoll")
+
+
+def test_eye_angles(tmp_path):
+    n = 4
+    left = Rotation.from_euler("y", 12.0, degrees=True).as_matrix()  # image axes: towards image right
+    right = Rotation.from_euler("x", -6.0, degrees=True).as_matrix()
+    eyes = np.tile(np.stack([left, right]), (n, 1, 1, 1))
+    eyes[1] = np.nan  # no estimate: hold the previous
+    back = read_livelink_csv(write_livelink_csv(tmp_path / "t.csv", Weights(np.zeros((n, 1)), ("jawOpen",), 30),
+                                                eyes=eyes), fps=30)
+    np.testing.assert_allclose(np.degrees(back.rotations[:, 3:]), np.tile([-12.0, 0, 0, 0, -6.0, 0], (n, 1)), atol=1e-4)
+    np.testing.assert_array_equal(back.rotations[:, :3], 0.0)

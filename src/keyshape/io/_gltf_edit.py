@@ -225,6 +225,50 @@ def find_head(document: pygltflib.GLTF2, face_nodes: list[int], *, name: str | N
     return face_nodes[0] if len(face_nodes) == 1 else None
 
 
+def find_eyes(document: pygltflib.GLTF2, head: int | None, *, names: tuple[str, str] | None = None
+              ) -> tuple[int, int] | None:
+    """The (left, right) eye nodes: named ``names``, else found by name below ``head`` (or anywhere).
+
+    A node is an eye when its name has ``eye`` (not lid, lash, brow, socket or an end bone) and a
+    side: ``left``/``right`` or a separate ``l``/``r`` (``Eye_L``, ``eye.R``, ``LeftEye``). Left is
+    the character's own left. Joints are preferred, then shorter names. None when either is missing.
+    """
+    if names is not None:
+        found = [next((i for i, n in enumerate(document.nodes) if n.name == name), None) for name in names]
+        if None in found:
+            raise RigError(f"no eye nodes named {list(names)}; nodes: {sorted({n.name for n in document.nodes if n.name})[:40]}")
+        return found[0], found[1]
+    pool = _descendants(document, head) if head is not None else range(len(document.nodes))
+    joints = {j for skin in document.skins for j in skin.joints}
+    sides = []
+    for side in ("left", "right"):
+        nodes = [n for n in pool if _is_eye(document.nodes[n].name, side)]
+        sides.append(min(nodes, key=lambda n: (n not in joints, len(document.nodes[n].name), n)) if nodes else None)
+    return None if None in sides else (sides[0], sides[1])
+
+
+_EYE = re.compile(r"eye", re.IGNORECASE)
+_NOT_EYE = re.compile(r"lid|lash|brow|socket|end|top|nub|null|target|look", re.IGNORECASE)
+
+
+def _is_eye(name, side: str) -> bool:
+    if not name or not _EYE.search(name) or _NOT_EYE.search(name):
+        return False
+    lowered = name.lower()
+    other = "right" if side == "left" else "left"
+    letter = re.search(rf"(^|[._\-\s:]){side[0]}($|[._\-\s:])", lowered)
+    return (side in lowered or bool(letter)) and other not in lowered
+
+
+def _descendants(document, node: int) -> list[int]:
+    out, stack = [], [node]
+    while stack:
+        current = stack.pop()
+        out.append(current)
+        stack.extend(document.nodes[current].children or [])
+    return out
+
+
 def _is_head(name) -> bool:
     return bool(name) and bool(_HEAD.search(name)) and not _NOT_HEAD.search(name)
 
@@ -298,7 +342,7 @@ def as_trs(node: pygltflib.Node) -> None:
 
 
 def head_local_rotations(document: pygltflib.GLTF2, head: int, deltas: np.ndarray) -> np.ndarray:
-    """(n_frames, 4) quaternions (x, y, z, w): the head node's local rotation per frame.
+    """(n_frames, 4) quaternions (x, y, z, w): a node's (head's, an eye's) local rotation per frame.
 
     ``deltas (n_frames, 3, 3)`` are head rotations in the world frame; the result is
     ``Pᵀ D P R`` (module docstring), sign-continuous for LINEAR interpolation.

@@ -50,8 +50,8 @@ class GlbAnimation(NamedTuple):
     times : (n_frames,) float, seconds
     weights : (n_frames, n_targets) float
     rotations : (n_frames, 4) float or None
-        Quaternions (x, y, z, w) of the animation's head ``rotation`` channel, as stored (the
-        node's local rotation), or None.
+        Quaternions (x, y, z, w) of the animation's first ``rotation`` channel (the head's, in
+        files keyshape writes), as stored (the node's local rotation), or None.
     """
 
     names: tuple[str, ...]
@@ -398,8 +398,8 @@ def read_glb_animation(path, *, animation: str | int | None = None) -> GlbAnimat
     Returns
     -------
     GlbAnimation
-        Weights of every mesh the animation drives, by target name; ``rotations`` of its
-        ``rotation`` channel when it has exactly one.
+        Weights of every mesh the animation drives, by target name; ``rotations`` of its first
+        ``rotation`` channel.
 
     Raises
     ------
@@ -445,6 +445,6 @@ def _read_animation(document, buffers, animation) -> GlbAnimation:
     weights = np.stack([columns[n] for n in names], axis=1) if names else np.zeros((len(times), 0))
     rotation = [c for c in animation.channels if c.target.path == "rotation"]
     rotations = None
-    if len(rotation) == 1:
+    if rotation:
         rotations = read_accessor(document, buffers, animation.samplers[rotation[0].sampler].output)
     return GlbAnimation(names, times, weights, rotations)

@@ -65,7 +65,8 @@ def format_of(path, format: str | Format | None = None) -> Format:
 
 
 def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | None = None,
-           format: str | Format | None = None, source=None, head: str | None = None) -> Path:
+           format: str | Format | None = None, source=None, head: str | None = None,
+           eyes=None) -> Path:
     """Write ``animation`` to ``path`` in the chosen format, atomically.
 
     Parameters
@@ -87,6 +88,9 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     head : str, optional, keyword-only
         The node of ``source`` to turn with the head (default: found by name; see
         :func:`keyshape.io.gltf.animate_gltf`).
+    eyes : (n_frames, 2, 3, 3) float, optional, keyword-only
+        Eye rotations relative to the head (left eye first), for ``livelink`` and for ``glb`` onto
+        ``source`` (its eye nodes); files keyshape builds have no eyes and ignore them.
 
     Returns
     -------
@@ -105,7 +109,7 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
         from .gltf import animate_gltf, write_glb
 
         if glb_source:
-            return animate_gltf(source, animation, path, poses=poses, head=head)
+            return animate_gltf(source, animation, path, poses=poses, head=head, eyes=eyes)
         return write_glb(path, rig, animation, poses=poses)
     if chosen is Format.USD:
         from .usd import write_usd
@@ -114,7 +118,7 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     if chosen is Format.LIVELINK:
         from .livelink import write_livelink_csv
 
-        return write_livelink_csv(path, animation, poses=poses)
+        return write_livelink_csv(path, animation, poses=poses, eyes=eyes)
     from .weights_csv import save_weights_csv
 
     return save_weights_csv(animation, path)

@@ -241,7 +241,8 @@ def _add_rotation(animation: pygltflib.Animation, blob: edit.Blob, times: int, n
 
 
 def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
-                 head: str | None = None) -> Path:
+                 head: str | None = None, eyes: np.ndarray | None = None,
+                 eye_nodes: tuple[str, str] | None = None) -> Path:
     """Add the performance to an artist's own glTF file, keeping everything else.
 
     Parameters
@@ -261,6 +262,13 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
         rest rotation ``P`` and its own rest rotation ``R``, so it turns about its pivot.
     head : str, optional, keyword-only
         Name of the node to turn. Default: found (see ``_gltf_edit.find_head``).
+    eyes : (n_frames, 2, 3, 3) float, optional, keyword-only
+        Eye rotations relative to the head, image convention (as ``poses.rotations``), the
+        character's left eye first; NaN frames hold the previous valid rotation. Written as the
+        ``rotation`` of the eye nodes (below the head, named like ``Eye_L``/``RightEye``; see
+        ``_gltf_edit.find_eyes``), composed with their rest rotation as the head's.
+    eye_nodes : (str, str), optional, keyword-only
+        Names of the (left, right) eye nodes, when they cannot be found by name.
 
     Returns
     -------
@@ -269,12 +277,14 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     Raises
     ------
     RigError
-        If the file has no named morph targets, ``weights`` names targets it lacks, or
-        ``poses`` is given and no head node can be found (name one with ``head``).
+        If the file has no named morph targets, ``weights`` names targets it lacks, ``poses`` is
+        given and no head node can be found (name one with ``head``), or ``eyes`` is given and no
+        eye nodes can be found (name them with ``eye_nodes``).
     """
     path, source = Path(path), Path(source)
     _check_suffix(path)
     _check_poses(poses, weights)
+    _check_eyes(eyes, weights)
     document, buffers = load_document(source)
     meshes = morph_meshes(document, source)
     _check_known(document, meshes, weights, source)
@@ -282,7 +292,10 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     edit.drop_animations(document, ANIMATION_NAMES)
     edit.root_skinned_meshes(document)
     if weights.n_frames:
-        document.animations.append(_performance(document, blob, meshes, weights, poses, head, source))
+        animation, nodes = _performance(document, blob, meshes, weights, source)
+        _turn_head(document, blob, animation, nodes, poses, head, source)
+        _turn_eyes(document, blob, animation, nodes, eyes, (head, eye_nodes), source)
+        document.animations.append(animation)
     blob.finish()
     edit.prune(document)
     return _save(path, document)
@@ -298,7 +311,14 @@ def _check_known(document, meshes, weights: Weights, source) -> None:
                        f"its targets: {sorted(known)}")
 
 
-def _performance(document, blob, meshes, weights, poses, head, source) -> pygltflib.Animation:
+def _check_eyes(eyes, weights: Weights) -> None:
+    if eyes is not None and np.shape(eyes) != (weights.n_frames, 2, 3, 3):
+        raise InputError(f"eyes must have shape ({weights.n_frames}, 2, 3, 3) (left, right rotations per frame); "
+                         f"got {np.shape(eyes)}")
+
+
+def _performance(document, blob, meshes, weights, source) -> tuple[pygltflib.Animation, list[int]]:
+    """The ``keyshape`` animation with a ``weights`` channel per face node, and those nodes."""
     times = _times(blob, weights)
     outputs, by_mesh = [], {}
     nodes = edit.morph_nodes(document, meshes)
@@ -309,16 +329,38 @@ def _performance(document, blob, meshes, weights, poses, head, source) -> pygltf
         if mesh not in by_mesh:
             by_mesh[mesh] = _weights_output(blob, _mesh_weights(document.meshes[mesh], weights))
         outputs.append((node, by_mesh[mesh]))
-    animation = _animation(times, outputs, ANIMATION)
-    if poses is not None:
-        index = edit.find_head(document, nodes, name=head)
-        if index is None:
-            raise RigError(f"{str(source)!r}: no head node found for the head rotation (no joint or "
-                           "node named like 'head' above the face meshes); name one, or leave out the poses")
-        edit.as_trs(document.nodes[index])
-        quats = edit.head_local_rotations(document, index, head_rotations(poses))
-        _add_rotation(animation, blob, times, index, quats)
-    return animation
+    return _animation(times, outputs, ANIMATION), nodes
+
+
+def _turn_head(document, blob, animation, nodes, poses, head, source) -> None:
+    if poses is None:
+        return
+    index = edit.find_head(document, nodes, name=head)
+    if index is None:
+        raise RigError(f"{str(source)!r}: no head node found for the head rotation (no joint or "
+                       "node named like 'head' above the face meshes); name one, or leave out the poses")
+    _add_node_rotation(document, blob, animation, index, head_rotations(poses))
+
+
+def _turn_eyes(document, blob, animation, nodes, eyes, names, source) -> None:
+    if eyes is None:
+        return
+    head, eye_nodes = names
+    found = edit.find_eyes(document, edit.find_head(document, nodes, name=head), names=eye_nodes)
+    if found is None:
+        raise RigError(f"{str(source)!r}: no eye nodes found (named like Eye_L / RightEye below the head); "
+                       "name them, or leave out the eye rotations")
+    eyes = np.asarray(eyes, dtype=float)
+    for side, node in enumerate(found):
+        rotations = _fill_invalid(eyes[:, side])
+        _add_node_rotation(document, blob, animation, node, _IMAGE_TO_GLTF @ rotations @ _IMAGE_TO_GLTF)
+
+
+def _add_node_rotation(document, blob, animation, node: int, world: np.ndarray) -> None:
+    """A rotation channel turning ``node`` by ``world (n_frames, 3, 3)`` (glTF axes) about its pivot."""
+    edit.as_trs(document.nodes[node])
+    times = animation.samplers[0].input
+    _add_rotation(animation, blob, times, node, edit.head_local_rotations(document, node, world))
 
 
 def _mesh_weights(mesh: pygltflib.Mesh, weights: Weights) -> np.ndarray:

@@ -15,8 +15,9 @@ One row per frame::
   and ``_R``) is their mean. Coefficients the rig lacks are 0.
 * Head yaw, pitch and roll are in radians: the head rotation in glTF axes (+Y up, the
   character facing +Z) written as intrinsic Y-X-Z Euler angles (yaw about +Y, pitch about the
-  turned +X, roll about the final +Z), right-handed; 0 without poses. Eye rotations are 0:
-  keyshape does not estimate gaze as rotations yet.
+  turned +X, roll about the final +Z), right-handed; 0 without poses. Eye angles are the same
+  for each eye's rotation relative to the head (``eyes``), the character's left eye first; 0
+  without them.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ LIVELINK_NAMES = (
 )
 ROTATION_NAMES = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
                   "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
+_IMAGE_TO_GLTF = np.diag([1.0, -1.0, -1.0])
 HEADER = ("Timecode", "BlendShapeCount", *LIVELINK_NAMES, *ROTATION_NAMES)
 _SIDE = re.compile(r"[_.\s-](l|r)$", re.IGNORECASE)
 _TIMECODE = re.compile(r"^(\d+):(\d\d):(\d\d)[:;](\d+)(?:\.(\d+))?$")
@@ -114,7 +116,8 @@ def livelink_columns(names) -> tuple[dict[str, list[int]], list[str]]:
     return sources, [n for i, n in enumerate(names) if i not in used]
 
 
-def write_livelink_csv(path, weights: Weights, *, poses: Poses | None = None) -> Path:
+def write_livelink_csv(path, weights: Weights, *, poses: Poses | None = None,
+                       eyes: np.ndarray | None = None) -> Path:
     """Write ARKit-named weights (and the head rotation) as a Live Link Face CSV, atomically.
 
     Parameters
@@ -126,6 +129,9 @@ def write_livelink_csv(path, weights: Weights, *, poses: Poses | None = None) ->
         are left out (see :func:`livelink_columns`).
     poses : Poses, optional
         Head poses (image convention, as :func:`keyshape.io.gltf.write_glb`): yaw, pitch, roll.
+    eyes : (n_frames, 2, 3, 3) float, optional
+        Eye rotations relative to the head (image convention), left eye first (as
+        :func:`keyshape.io.gltf.animate_gltf`).
 
     Returns
     -------
@@ -138,17 +144,21 @@ def write_livelink_csv(path, weights: Weights, *, poses: Poses | None = None) ->
     InputError
         If ``poses`` has another frame count.
     """
-    from .gltf import _check_poses, head_rotations
+    from .gltf import _check_eyes, _check_poses, _fill_invalid, head_rotations
 
     sources, _ = livelink_columns(weights.names)
     if not sources:
         raise RigError(f"no ARKit-named targets among {list(weights.names)[:12]}...: Live Link Face "
                        "needs names such as jawOpen, eyeBlinkLeft or eyeBlink_L")
     _check_poses(poses, weights)
+    _check_eyes(eyes, weights)
     table = _coefficients(weights, sources)
     angles = np.zeros((weights.n_frames, len(ROTATION_NAMES)))
     if poses is not None:
         angles[:, :3] = head_angles(head_rotations(poses))
+    for side in range(2 if eyes is not None else 0):
+        rotations = _fill_invalid(np.asarray(eyes, dtype=float)[:, side])
+        angles[:, 3 + 3 * side:6 + 3 * side] = head_angles(_IMAGE_TO_GLTF @ rotations @ _IMAGE_TO_GLTF)
     _write_rows(path, weights.fps, table, angles)
     return Path(path)
 
