@@ -256,7 +256,9 @@ values = []
 for frame in range(int(sys.argv[2])):
     bpy.context.scene.frame_set(frame)
     values.append([k.value for k in face.data.shape_keys.key_blocks[1:]])
-print("VALUES " + json.dumps({"names": [k.name for k in face.data.shape_keys.key_blocks[1:]], "values": values}))
+blocks = face.data.shape_keys.key_blocks
+moves = [sorted(round((p.co - b.co).length, 7) for p, b in zip(k.data, blocks[0].data)) for k in blocks[1:]]
+print("VALUES " + json.dumps({"names": [k.name for k in blocks[1:]], "values": values, "moves": moves}))
 """
 
 
@@ -276,3 +278,5 @@ def test_blender_plays_the_exported_weights(head_obj, tmp_path, suffix):
     seen = json.loads(run.stdout.split("VALUES ", 1)[1].splitlines()[0])
     assert seen["names"] == list(rig.names)
     np.testing.assert_allclose(seen["values"], weights.values, atol=1e-5)
+    # the targets arrive whole (sparse glTF accessors, USD pointIndices): same displacement lengths
+    np.testing.assert_allclose(seen["moves"], np.sort(np.linalg.norm(rig.deltas, axis=2), axis=1), atol=1e-6)
