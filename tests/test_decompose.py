@@ -169,8 +169,7 @@ def test_convex_matches_clarabel(upper):
     if upper is not None:
         assert (W <= upper).all()
     R = np.array([qp_reference(A, b, upper, convex=True) for b in B])
-    obj = lambda X: residual(A, B, X) ** 2  # noqa: E731
-    np.testing.assert_allclose(obj(W), obj(R), rtol=1e-7)
+    np.testing.assert_allclose(residual(A, B, W) ** 2, residual(A, B, R) ** 2, rtol=1e-7)
     np.testing.assert_allclose(W, R, atol=1e-5)
 
 
@@ -402,3 +401,13 @@ def test_solve_weights_with_smoothness_bridges_missing_faces():
     raw = solve_weights(Track(points, fps=30.0), keys, upper=1.0).values
     assert np.isnan(raw[50:55]).all()
     assert jitter(weights.values) < jitter(raw[:50])
+
+
+def test_looser_tolerance_is_still_close_and_feasible():
+    A, _, B = smooth_problem(7, n_frames=300)
+    tight = solve_spacetime(A, B, smoothness=1.0, upper=1.0)
+    loose = solve_spacetime(A, B, smoothness=1.0, upper=1.0, tol=1e-3)
+    assert (loose >= 0).all() and (loose <= 1.0).all()
+    assert objective(A, B, loose, 1.0) <= objective(A, B, tight, 1.0) * (1 + 1e-3)
+    with pytest.raises(InputError, match="tol must be"):
+        solve_spacetime(A, B, smoothness=1.0, tol=0.0)
