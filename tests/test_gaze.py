@@ -56,3 +56,18 @@ def test_neutral_frame_is_straight_ahead():
 def test_needs_irises():
     with pytest.raises(ValueError, match="478 landmarks"):
         estimate_gaze(np.zeros((2, 468, 3)))
+
+
+def test_rotations_turn_the_eye_toward_the_gaze():
+    frames = np.stack([_face(0, 0), _face(20, 0), _face(0, 15), _face(-10, -5)])
+    gaze = estimate_gaze(frames)
+    rot = gaze.rotations()
+    assert rot.shape == (4, 2, 3, 3)
+    np.testing.assert_allclose(np.einsum("feij,feik->fejk", rot, rot), np.tile(np.eye(3), (4, 2, 1, 1)),
+                               atol=1e-12)
+    look = rot @ np.array([0.0, 0.0, -1.0])  # rest: toward the camera
+    assert look[1, 0, 0] > 0.3 and look[1, 1, 0] > 0.3  # yaw > 0: toward image +x
+    assert look[2, 0, 1] < -0.2  # pitch > 0: up (image -y)
+    yaw, pitch = np.radians(-10), np.radians(-5)
+    np.testing.assert_allclose(look[3, 0], [np.sin(yaw) * np.cos(pitch), -np.sin(pitch),
+                                            -np.cos(yaw) * np.cos(pitch)], atol=1e-9)

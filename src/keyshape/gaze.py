@@ -38,6 +38,28 @@ class Gaze:
 
     n_frames = property(lambda self: self.yaw.shape[0])
 
+    def rotations(self) -> np.ndarray:
+        """Eye rotations ``(n_frames, 2, 3, 3)`` relative to the head, LEFT eye first.
+
+        Image convention (x right, y down, z away from the camera), as the exporters take them:
+        ``R = R_y(−yaw) · R_x(−pitch)`` turns the rest direction (toward the camera, −z) into the
+        gaze direction ``(sin yaw · cos pitch, −sin pitch, −cos yaw · cos pitch)``. NaN angles
+        (no face) give the identity.
+        """
+        yaw = np.radians(np.nan_to_num(self.yaw[:, ::-1]))  # (right, left) -> (left, right)
+        pitch = np.radians(np.nan_to_num(self.pitch[:, ::-1]))
+        return np.einsum("feij,fejk->feik", _about_y(-yaw), _about_x(-pitch))
+
+
+def _about_y(angle: np.ndarray) -> np.ndarray:
+    c, s, z, o = np.cos(angle), np.sin(angle), np.zeros_like(angle), np.ones_like(angle)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def _about_x(angle: np.ndarray) -> np.ndarray:
+    c, s, z, o = np.cos(angle), np.sin(angle), np.zeros_like(angle), np.ones_like(angle)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
 
 def _iris_ids(eye: str) -> np.ndarray:
     return np.array(mediapipe_scheme()["contours"][f"{eye}_iris"])
