@@ -482,3 +482,14 @@ def test_eye_nodes_turn_with_the_gaze(rig, weights, tmp_path):
     with pytest.raises(RigError, match="no eye nodes found"):
         animate_gltf(plain, weights, tmp_path / "x.glb", eyes=look)
     assert not (tmp_path / "x.glb").exists()
+
+
+def test_matrix_nodes_become_trs_when_animated():
+    rotation = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation * [1.0, 2.0, 0.5]
+    matrix[:3, 3] = [0.1, 0.2, 0.3]
+    node = pygltflib.Node(name="Head", matrix=matrix.T.reshape(-1).tolist())  # column-major
+    edit.as_trs(node)
+    assert node.matrix is None and node.scale == pytest.approx([1.0, 2.0, 0.5])
+    np.testing.assert_allclose(edit.local_matrix(node), matrix, atol=1e-12)
