@@ -68,7 +68,7 @@ class Gram:
     G : (K, K) float, symmetric positive definite
     H : (K, K) float, ``G⁻¹``
     ridge : float, the ``δ`` added to the diagonal (0 when none)
-    use_inverse : bool, whether ``H`` is accurate enough (``cond(G) ≤ 1e5``) for the
+    use_inverse : bool, whether ``H`` is accurate enough (``cond(G) ≤ 1e8``) for the
         Schur-complement solves of :func:`free_solve`
     """
 
@@ -87,7 +87,7 @@ class Gram:
         G = G + ridge * np.eye(len(G))
         H = cho_solve(cho_factor(G, lower=True), np.eye(len(G)))
         cond = (top + ridge) / (eig[0] + ridge)
-        return cls(G, 0.5 * (H + H.T), ridge, bool(cond <= 1e5))
+        return cls(G, 0.5 * (H + H.T), ridge, bool(cond <= 1e8))
 
 
 # --------------------------------------------------------------------------- reduced solves
@@ -111,15 +111,22 @@ def free_solve(gram: Gram, free: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     -------
     (n, K) float
     """
-    k = free.shape[1]
-    dual = 2 * free.sum(axis=1) > k if gram.use_inverse else np.zeros(len(free), bool)
+    if not gram.use_inverse:
+        return masked_solve(gram.G, free, rhs)
+    dual = 2 * free.sum(axis=1) > free.shape[1]
+    if dual.all() or not dual.any():
+        return _schur_solve(gram, free, rhs) if dual.all() else masked_solve(gram.G, free, rhs)
     z = np.empty(rhs.shape)
     z[~dual] = masked_solve(gram.G, free[~dual], rhs[~dual])
-    if dual.any():
-        z0 = (rhs[dual] * free[dual]) @ gram.H
-        lam = masked_solve(gram.H, ~free[dual], z0)  # H_NN⁻¹ (H r)_N, zero on F
-        z[dual] = (z0 - lam @ gram.H) * free[dual]
+    z[dual] = _schur_solve(gram, free[dual], rhs[dual])
     return z
+
+
+def _schur_solve(gram, free, rhs):
+    """``z = H r − H_{:N} H_NN⁻¹ (H r)_N`` on each row's free set (``r`` zero off it)."""
+    z0 = (rhs * free) @ gram.H
+    lam = masked_solve(gram.H, ~free, z0)  # H_NN⁻¹ (H r)_N, zero on F
+    return (z0 - lam @ gram.H) * free
 
 
 def masked_solve(G: np.ndarray, free: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -138,16 +145,20 @@ def masked_solve(G: np.ndarray, free: np.ndarray, rhs: np.ndarray) -> np.ndarray
     -------
     (n, K) float
     """
-    out = np.zeros(rhs.shape)
-    counts = free.sum(axis=1)
-    order = np.argsort(counts, kind="stable")
-    edges = np.searchsorted(counts[order], np.arange(G.shape[0] + 2))
-    for size in range(1, G.shape[0] + 1):
-        rows = order[edges[size] : edges[size + 1]]
-        if len(rows):
-            cols = np.nonzero(free[rows])[1].reshape(len(rows), size)  # (n_b, size)
-            out[rows[:, None], cols] = _compact_solve(G, cols, rhs[rows[:, None], cols])
-    return out
+    k = G.shape[0]
+    counts = free.sum(axis=1, dtype=np.uint8)
+    order = np.argsort(counts, kind="stable")  # a radix sort on uint8
+    edges = np.searchsorted(counts[order], np.arange(k + 2))
+    free, rhs, out = free[order], rhs[order], np.zeros(rhs.shape)  # buckets are now slices
+    for size in range(1, k + 1):
+        lo, hi = edges[size], edges[size + 1]
+        if lo < hi:
+            cols = np.nonzero(free[lo:hi])[1].reshape(hi - lo, size)  # (n_b, size)
+            r = np.take_along_axis(rhs[lo:hi], cols, axis=1)
+            np.put_along_axis(out[lo:hi], cols, _compact_solve(G, cols, r), axis=1)
+    result = np.empty_like(out)
+    result[order] = out
+    return result
 
 
 def _compact_solve(G, cols, rhs):
@@ -194,11 +205,14 @@ def _batched_cho_solve(L, r):
 
 def initial_state(X0: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """(n, K) int8 classification of an unconstrained guess ``X0``: below 0, inside, above ``u``."""
-    return np.where(X0 < 0, LOWER, np.where(X0 > upper, UPPER, FREE)).astype(np.int8)
+    return (X0 > upper).view(np.int8) - (X0 < 0).view(np.int8) + np.int8(FREE)
 
 
 def _evaluate(gram, C, upper, state):
     """Subspace minimiser ``x`` (fixed variables at their bounds) and its gradient ``Gx − c``."""
+    if not np.isfinite(upper).any():  # plain NNLS: every fixed variable is 0
+        x = free_solve(gram, state == FREE, C)
+        return x, x @ gram.G - C
     fixed = np.where(state == UPPER, upper, 0.0)  # (n, K): value of the non-free variables
     x = free_solve(gram, state == FREE, C - fixed @ gram.G) + fixed
     return x, x @ gram.G - C
@@ -245,14 +259,16 @@ def _block_pivoting(gram, C, upper, state, max_sweeps=None):
     n, k = C.shape
     X, state = np.empty((n, k)), state.copy()
     todo = np.arange(n)
+    c_max, g_max = np.abs(C).max(axis=1, keepdims=True), np.abs(gram.G).max()
     best, budget = np.full(n, k + 1), np.full(n, 3)
     for _ in range(max_sweeps or 2 * k + 10):
-        x, y = _evaluate(gram, C[todo], upper, state[todo])
-        tol_x, tol_y = _tolerances(x, C[todo], gram, upper)
-        free = state[todo] == FREE
-        bad = (free & ((x < -tol_x) | (x > upper + tol_x))) | (
-            _dual_violations(y, state[todo], tol_y) > 0
-        )
+        every = len(todo) == n
+        c, s = (C, state) if every else (C[todo], state[todo])
+        x, y = _evaluate(gram, c, upper, s)
+        scale = 1.0 + np.abs(x).max(axis=1, keepdims=True)
+        tol_y = _TOL * ((c_max if every else c_max[todo]) + g_max * scale)
+        sign = (s == UPPER).view(np.int8) - (s == LOWER).view(np.int8)  # +1 at u, −1 at 0
+        bad = ((s == FREE) & ((x < -_TOL * scale) | (x > upper + _TOL * scale))) | (y * sign > tol_y)
         n_bad = bad.sum(axis=1)
         X[todo] = x
         # Kim & Park: exchange everything while the infeasible count falls (or for 3 sweeps)
@@ -260,11 +276,11 @@ def _block_pivoting(gram, C, upper, state, max_sweeps=None):
         best[todo] = np.where(improved, n_bad, best[todo])
         budget[todo] = np.where(improved, 3, budget[todo] - 1)
         keep = (n_bad > 0) & (budget[todo] >= 0)
-        todo, x, bad = todo[keep], x[keep], bad[keep]
+        todo, x, bad, s = todo[keep], x[keep], bad[keep], s[keep]
         if not len(todo):
             break
         to_bound = np.where(x < 0, LOWER, UPPER)
-        state[todo] = np.where(bad, np.where(state[todo] == FREE, to_bound, FREE), state[todo])
+        state[todo] = np.where(bad, np.where(s == FREE, to_bound, FREE), s)
     return X, state, np.union1d(np.flatnonzero(budget < 0), todo)
 
 
@@ -281,7 +297,7 @@ def _active_set(gram, C, upper, X, state, max_iter=None):
     state, frozen, released = state.copy(), np.zeros((n, k), bool), np.full(n, -1)
     todo = np.arange(n)
     for _ in range(max_iter or 5 * k + 20):
-        x, s = X[todo], state[todo]
+        s = state[todo]
         xs, y = _evaluate(gram, C[todo], upper, s)
         tol_x, tol_y = _tolerances(xs, C[todo], gram, upper)
         out_of_box = (s == FREE) & ((xs < -tol_x) | (xs > upper + tol_x))
