@@ -169,7 +169,13 @@ def build_parser() -> argparse.ArgumentParser:
                                    "--rig the character is a face mesh of the actor's own neutral "
                                    "landmarks with the key frames as its targets.")
     p.add_argument("video", type=Path, help="video file or folder of images")
-    p.add_argument("--rig", type=Path, default=None, help="rig with targets named after the keys")
+    p.add_argument("--rig", type=Path, default=None,
+                   help="character: OBJ folder, .glb/.gltf (kept whole, animation added) or USD, with "
+                        "targets named after the keys (e.g. from `keyshape sculpt`) or --map")
+    p.add_argument("--map", type=Path, default=None, metavar="MAP.json",
+                   help="key -> rig target gains (JSON), for rigs with their own shape set")
+    p.add_argument("--keys", type=Path, default=None, metavar="KEYS.json",
+                   help="reuse this key set (e.g. shared across takes) instead of discovering one")
     _add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     _add_key_options(p)
@@ -270,39 +276,20 @@ def cmd_solve(args) -> None:
 
 
 def _run(args, video: Path) -> None:
-    from .capture import track_video
-    from .io.gltf import write_glb
-    from .io.keys_json import save_keys
-    from .io.take import save_take_info
-    from .io.track import save_track
-    from .io.weights_csv import save_weights_csv
-    from .pipeline import default_character, discover_keys, solve_take
-    from .report import write_take_extras
-    from .retarget import Mapping, retarget
-    from .rig import load_rig
+    from .workflow import RunOptions, run_take
 
-    start = time.perf_counter()
-    track = track_video(video, progress=_progress(args), **_capture_kwargs(args))
-    keys = discover_keys(track, regions=args.regions, n_keys=args.count, method=args.method,
-                         neutral=args.neutral, take=video.name)
-    solved = solve_take(track, keys, **_solve_kwargs(args))
-    rig = load_rig(args.rig) if args.rig is not None else default_character(keys)
-    anim = retarget(solved.weights, Mapping.by_name(keys.names, rig.names))
-    out = args.output
-    save_track(track, out / "track.npz")
-    save_keys(keys, out / "keys.json")
-    save_weights_csv(solved.weights, out / "weights.csv")
-    write_glb(out / "animation.glb", rig, anim, poses=solved.poses)
-    save_take_info(out / "take.json", video=video, track=track, keys=keys)
-    extras = write_take_extras(out, progress=_progress(args), preview=not args.no_preview)
-    _say(args, f"{video.name}: {track.n_frames} frames, face in {100 * track.valid.mean():.1f} %, "
+    options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
+                         n_keys=args.count, method=args.method, neutral=args.neutral,
+                         capture=_capture_kwargs(args), preview=not args.no_preview,
+                         **_solve_kwargs(args))
+    summary = run_take(video, args.output, options, progress=_progress(args))
+    keys = summary.keys
+    _say(args, f"{video.name}: {summary.n_frames} frames, face in {100 * summary.detection_rate:.1f} %, "
                f"neutral frame {keys.neutral_frame}")
     _say(args, f"keys: {_describe_keys(keys)}")
-    _say(args, f"gaps: {solved.gaps}")
-    shown = ", ".join(p.name for p in [extras.preview, *extras.pictures.values(), extras.report] if p)
-    _say(args, f"wrote {out}/track.npz, keys.json, weights.csv, animation.glb, take.json, {shown} "
-               f"in {time.perf_counter() - start:.1f} s")
-    _say(args, f"see it: open {extras.report} or run `keyshape view {out}`")
+    _say(args, f"fit: RMS error {summary.error_pct:.2f} % of the inter-ocular distance; gaps: {summary.gaps}")
+    _say(args, f"wrote {args.output}/: {', '.join(summary.files)} in {summary.seconds:.1f} s")
+    _say(args, f"see it: open {args.output / 'report.html'} or run `keyshape view {args.output}`")
 
 
 def cmd_run(args) -> None:
@@ -311,6 +298,7 @@ def cmd_run(args) -> None:
 
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
+    args.map, args.keys = None, None
     args.start, args.end, args.fps, args.face, args.no_preview = 0, None, None, 0, False
     args.one_euro, args.smooth, args.max, args.convex = None, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, False
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))
