@@ -372,13 +372,13 @@ def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 60, swi
     lam = np.linalg.eigvalsh(seq.G)
     rho = admm_rho(seq, lam)
     solver, exact = EigenSolver(seq, rho), EigenSolver(seq, 0.0)
-    Z, U = np.zeros(seq.C.shape), np.zeros(seq.C.shape)
-    best = None
-    for _ in range(0, max_admm, 10):
-        Z, U = admm(seq, solver, rho, Z, U, 10)
-        best = _Best(seq, exact, Z) if best is None else best.offer(Z)
+    Z, U = admm(seq, solver, rho, np.zeros(seq.C.shape), np.zeros(seq.C.shape), 20)
+    best = _Best(seq, exact, Z)
+    for _ in range(20, max_admm, 10):  # rounds of 10, each certified
         if best.gap <= max(switch, rtol):
             break
+        Z, U = admm(seq, solver, rho, Z, U, 10)
+        best.offer(Z)
     state, sums = classify(seq, best.Z)
     history, limit = [], None
     for _ in range(max_newton):
@@ -473,7 +473,7 @@ class _Best:
 
     def __init__(self, seq, exact, Z):
         self.seq, self.exact = seq, exact
-        self.Z, self.F, self.q = Z, objective(seq, Z), -np.inf
+        self.Z, self.F, self.q = Z, np.inf, -np.inf
         self.offer(Z)
 
     def offer(self, Z, Y=None) -> _Best:
