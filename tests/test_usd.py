@@ -141,3 +141,113 @@ def test_missing_usd_core_says_how_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "pxr", None)
     with pytest.raises(MissingDependencyError, match=r'pip install "keyshape\[usd\]"'):
         usd._pxr()
+
+
+# ---------------------------------------------------------------- an artist's stage kept whole
+
+from keyshape.io.usd import animate_usd  # noqa: E402
+
+
+def test_animate_our_own_stage(rig, weights, tmp_path):
+    source = write_usd(tmp_path / "hero.usda", rig, Weights(np.zeros((1, 3)), rig.names, 30))
+    head = poses(weights.n_frames)
+    out = animate_usd(source, weights, tmp_path / "anim.usdc", poses=head)
+    assert check_usd(out) == []
+    back = read_usd_animation(out)
+    np.testing.assert_array_equal(back.weights, weights.values.astype(np.float32))
+    np.testing.assert_allclose(C @ Rotation.from_quat(back.rotations).as_matrix() @ C, head.rotations, atol=1e-6)
+    for frame in (0, 11):
+        np.testing.assert_allclose(deformed_points(out, frame), rig.pose(weights.values[frame:frame + 1])[0], atol=1e-5)
+    assert read_usd_animation(source).weights.shape == (1, 3)  # the source is untouched
+
+
+def _z_up_character(path):
+    """A centimetre, Z-up stage: SkelRoot > Skeleton (Root > Neck > Head, rest rotations) + a bound mesh."""
+    from pxr import Gf, Vt
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    root = UsdSkel.Root.Define(stage, "/Hero")
+    stage.SetDefaultPrim(root.GetPrim())
+    skeleton = UsdSkel.Skeleton.Define(stage, "/Hero/Rig")
+    skeleton.CreateJointsAttr(["Root", "Root/Neck", "Root/Neck/Head"])
+    local = [Gf.Matrix4d(1.0),
+             Gf.Matrix4d(Gf.Rotation(Gf.Vec3d(1, 0, 0), 90), Gf.Vec3d(0, 0, 150)),
+             Gf.Matrix4d(Gf.Rotation(Gf.Vec3d(0, 0, 1), 30), Gf.Vec3d(0, 10, 0))]
+    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray(local))
+    world = UsdSkel.ConcatJointTransforms(UsdSkel.Topology(["Root", "Root/Neck", "Root/Neck/Head"]),
+                                          Vt.Matrix4dArray(local))
+    skeleton.CreateBindTransformsAttr(world)
+    mesh = UsdGeom.Mesh.Define(stage, "/Hero/face")
+    mesh.CreatePointsAttr([(0, 0, 160), (10, 0, 160), (0, 0, 170)])
+    mesh.CreateFaceVertexCountsAttr([3])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2])
+    shape = UsdSkel.BlendShape.Define(stage, "/Hero/face/smile")
+    shape.CreateOffsetsAttr([(0, 0, 2)])
+    shape.CreatePointIndicesAttr([2])
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateBlendShapesAttr(["smile"])
+    binding.CreateBlendShapeTargetsRel().SetTargets([shape.GetPath()])
+    binding.CreateJointIndicesPrimvar(True, 1).Set([2])
+    binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
+    stage.Save()
+    return path
+
+
+def test_animate_a_z_up_stage_turns_its_head_joint(tmp_path):
+    source = _z_up_character(tmp_path / "hero.usda")
+    n = 6
+    head = poses(n, seed=9)
+    out = animate_usd(source, Weights(np.linspace(0, 1, n)[:, None], ("smile",), 24), tmp_path / "anim.usda",
+                      poses=head)
+    assert check_usd(out) == []
+    stage = Usd.Stage.Open(str(out))
+    assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    assert stage.GetTimeCodesPerSecond() == 24
+    cache = UsdSkel.Cache()
+    skeleton = UsdSkel.Skeleton(stage.GetPrimAtPath("/Hero/Rig"))
+    query = cache.GetSkelQuery(skeleton)
+    rest = np.asarray(query.ComputeJointSkelTransforms(Usd.TimeCode.Default(), atRest=True)[2])[:3, :3].T
+    a = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # glTF (+Y up) -> stage (+Z up)
+    for frame in range(n):
+        turned = np.asarray(query.ComputeJointSkelTransforms(Usd.TimeCode(frame))[2])[:3, :3].T
+        expected = a @ (C @ head.rotations[frame] @ C) @ a.T @ rest
+        np.testing.assert_allclose(turned, expected, atol=1e-5)
+    np.testing.assert_allclose(read_usd_animation(out).weights[:, 0], np.linspace(0, 1, n), atol=1e-7)
+
+
+def test_animate_usd_needs_a_skeleton_and_known_names(rig, tmp_path):
+    source = _z_up_character(tmp_path / "hero.usda")
+    with pytest.raises(RigError, match=r"does not have: \['frown'\]"):
+        animate_usd(source, Weights(np.zeros((2, 1)), ("frown",), 24), tmp_path / "x.usda")
+    stage = Usd.Stage.Open(str(source))
+    UsdSkel.BindingAPI(stage.GetPrimAtPath("/Hero/face")).GetSkeletonRel().ClearTargets(True)
+    stage.Save()
+    with pytest.raises(RigError, match="has blend shapes but no skeleton"):
+        animate_usd(source, Weights(np.zeros((2, 1)), ("smile",), 24), tmp_path / "x.usda")
+    assert not (tmp_path / "x.usda").exists()
+
+
+def test_retarget_command_keeps_a_usd_rig_whole(tmp_path):
+    from keyshape.cli import main
+    from keyshape.io.weights_csv import save_weights_csv
+
+    source = _z_up_character(tmp_path / "hero.usda")
+    stage = Usd.Stage.Open(str(source))
+    UsdGeom.Xform.Define(stage, "/Hero/Props")  # something of the artist's that must survive
+    stage.Save()
+    csv = save_weights_csv(Weights(np.linspace(0, 1, 8)[:, None], ("grin",), 24), tmp_path / "w.csv")
+    (tmp_path / "map.json").write_text('{"grin": {"smile": 0.5}}')
+    out = tmp_path / "anim.usdc"
+    assert main(["retarget", str(csv), "--rig", str(source), "--map", str(tmp_path / "map.json"), "-o", str(out),
+                 "-o", str(tmp_path / "anim.glb"), "-q"]) == 0
+    written = Usd.Stage.Open(str(out))
+    assert written.GetPrimAtPath("/Hero/Props") and written.GetPrimAtPath("/Hero/Rig/keyshape")
+    np.testing.assert_allclose(read_usd_animation(out).weights[:, 0], 0.5 * np.linspace(0, 1, 8), atol=1e-6)
+    assert check_usd(out) == []
+    from gltf_validator import validate
+
+    report = validate(tmp_path / "anim.glb")  # a USD rig to glTF: a new file from its blend shapes
+    assert (report["numErrors"], report["numWarnings"]) == (0, 0), report["messages"]

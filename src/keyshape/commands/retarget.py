@@ -11,9 +11,9 @@ HELP = "drive a rig with the weights and write .glb, USD, CSV or Live Link Face 
 DESCRIPTION = (
     "Apply the weights to a rig: targets named after the key shapes, or any targets through a "
     "mapping (--map). Writes each output in the format its suffix (or --format) names: .glb "
-    "(the original glTF file kept whole, with a morph-weight animation added), .usd/.usda/.usdc/"
-    ".usdz (UsdSkel), .csv (target weights) or --format livelink (Live Link Face CSV for "
-    "ARKit-named targets). With --track, the head rotation is written too."
+    "(a glTF rig's file kept whole, with a morph-weight animation added), .usd/.usda/.usdc/"
+    ".usdz (UsdSkel; a USD rig's stage kept whole), .csv (target weights) or --format livelink "
+    "(Live Link Face CSV for ARKit-named targets). With --track, the head rotation is written too."
 )
 EPILOG = """\
 mapping file (JSON, gains >= 0; a key may drive several targets):
@@ -60,7 +60,7 @@ def run(args) -> None:
     rig = _rig(args, formats, Format)
     anim = retarget(weights, _mapping(args, weights, rig))
     poses = _poses(args, weights)
-    source = args.rig if rig is not None and args.rig.suffix.lower() in (".glb", ".gltf") else None
+    source = args.rig if rig is not None and args.rig.is_file() and args.rig.suffix.lower() != ".obj" else None
     for out, chosen in zip(args.output, formats):
         export(anim, out, rig=rig, poses=poses, format=chosen, source=source, head=args.head)
         if not args.quiet:

@@ -6,8 +6,9 @@ format        suffixes                         writer
 ``glb``       ``.glb``                         :func:`keyshape.io.gltf.animate_gltf` onto the
                                                original glTF rig when there is one, else
                                                :func:`keyshape.io.gltf.write_glb`
-``usd``       ``.usd`` ``.usda`` ``.usdc``     :func:`keyshape.io.usd.write_usd` (``usd-core``)
-              ``.usdz``
+``usd``       ``.usd`` ``.usda`` ``.usdc``     :func:`keyshape.io.usd.animate_usd` onto the
+              ``.usdz``                        original USD rig when there is one, else
+                                               :func:`keyshape.io.usd.write_usd` (``usd-core``)
 ``csv``       ``.csv``                         :func:`keyshape.io.weights_csv.save_weights_csv`
 ``livelink``  (``--format livelink``; a        :func:`keyshape.io.livelink.write_livelink_csv`
               ``.csv`` name)
@@ -64,6 +65,14 @@ def format_of(path, format: str | Format | None = None) -> Format:
     return chosen
 
 
+def _source_kind(source) -> Format | None:
+    """GLB for a glTF source file, USD for a USD one, else None (an OBJ rig: nothing to keep)."""
+    suffix = "" if source is None else Path(source).suffix.lower()
+    if suffix in (".glb", ".gltf"):
+        return Format.GLB
+    return Format.USD if suffix in (".usd", ".usda", ".usdc", ".usdz") else None
+
+
 def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | None = None,
            format: str | Format | None = None, source=None, head: str | None = None,
            eyes=None) -> Path:
@@ -83,8 +92,9 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     format : str or Format, optional, keyword-only
         Default: from the suffix (``livelink`` must be asked for).
     source : str or Path, optional, keyword-only
-        The original ``.glb``/``.gltf`` the rig came from: ``glb`` output keeps that file whole
-        and adds the animation.
+        The file the rig came from: ``glb`` output onto a ``.glb``/``.gltf`` source and ``usd``
+        output onto a USD source keep that file whole and add the animation
+        (:func:`keyshape.io.gltf.animate_gltf`, :func:`keyshape.io.usd.animate_usd`).
     head : str, optional, keyword-only
         The node of ``source`` to turn with the head (default: found by name; see
         :func:`keyshape.io.gltf.animate_gltf`).
@@ -102,8 +112,9 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
         Unknown format or suffix, or ``rig`` missing where it is needed.
     """
     chosen = format_of(path, format)
-    glb_source = source is not None and Path(source).suffix.lower() in (".glb", ".gltf")
-    if chosen in _NEEDS_RIG and rig is None and not (chosen is Format.GLB and glb_source):
+    kind = _source_kind(source)
+    glb_source, usd_source = kind is Format.GLB, kind is Format.USD
+    if chosen in _NEEDS_RIG and rig is None and kind is not chosen:
         raise InputError(f"writing {chosen.value} needs the rig")
     if chosen is Format.GLB:
         from .gltf import animate_gltf, write_glb
@@ -112,8 +123,10 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
             return animate_gltf(source, animation, path, poses=poses, head=head, eyes=eyes)
         return write_glb(path, rig, animation, poses=poses)
     if chosen is Format.USD:
-        from .usd import write_usd
+        from .usd import animate_usd, write_usd
 
+        if usd_source:
+            return animate_usd(source, animation, path, poses=poses)
         return write_usd(path, rig, animation, poses=poses)
     if chosen is Format.LIVELINK:
         from .livelink import write_livelink_csv

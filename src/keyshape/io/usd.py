@@ -30,7 +30,7 @@ from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, MissingDependencyError, RigError
 from .atomic import atomic_path
 
-__all__ = ["write_usd", "read_rig", "read_usd_animation", "deformed_points", "check_usd",
+__all__ = ["write_usd", "animate_usd", "read_rig", "read_usd_animation", "deformed_points", "check_usd",
            "UsdAnimation", "USD_SUFFIXES"]
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
@@ -138,6 +138,10 @@ def _set_metadata(stage, weights: Weights) -> None:
     _, _, _, _, UsdGeom, _, _, _ = _pxr()
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    _set_timing(stage, weights)
+
+
+def _set_timing(stage, weights: Weights) -> None:
     stage.SetTimeCodesPerSecond(weights.fps)
     stage.SetFramesPerSecond(weights.fps)
     stage.SetStartTimeCode(0)
@@ -216,6 +220,160 @@ def _animation(stage, skeleton, rig: Rig, weights: Weights, quats: np.ndarray | 
     for frame, (x, y, z, w) in enumerate([] if quats is None else quats):
         rotations.Set(Vt.QuatfArray([Gf.Quatf(float(w), float(x), float(y), float(z))]), Usd.TimeCode(frame))
     UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([animation.GetPath()])
+
+
+# --------------------------------------------------------------------------- an artist's stage
+
+
+def animate_usd(source, weights: Weights, path, *, poses: Poses | None = None) -> Path:
+    """Add the performance to an artist's own UsdSkel stage, keeping everything else.
+
+    The stage is flattened into one layer (references and sublayers resolved); every Skeleton that
+    a blend-shape mesh is bound to gets a new SkelAnimation ``keyshape`` (its ``skel:animationSource``):
+    the joints hold their rest transforms, except the joint named like ``head`` (closest to the root),
+    which turns by the head pose about its pivot (``Pᵀ D P R`` in skeleton space, as the glTF
+    writer); the blend-shape weights are time-sampled per frame. ``timeCodesPerSecond`` and
+    ``framesPerSecond`` become the take's fps; ``metersPerUnit`` and ``upAxis`` stay the stage's.
+
+    Parameters
+    ----------
+    source : str or Path
+        A USD file whose blend-shape meshes are bound to a Skeleton (UsdSkel plays blend shapes
+        only through a skeleton's animation).
+    weights : Weights
+        Named by the stage's blend-shape channel names (any order, any subset; others stay 0).
+    path : str or Path
+        Output ``.usda``/``.usdc``/``.usd``/``.usdz`` (atomic).
+    poses : Poses, optional, keyword-only
+        Head poses in image convention (as :func:`keyshape.io.gltf.write_glb`).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    RigError
+        No blend-shape mesh, one without a skeleton, names the stage lacks, or poses without a
+        head joint.
+    """
+    from .gltf import _check_poses, head_rotations
+
+    _, Sdf, _, Usd, _, _, _, _ = _pxr()
+    path = Path(path)
+    if path.suffix.lower() not in USD_SUFFIXES:
+        raise InputError(f"USD output must end in one of {USD_SUFFIXES}; got {str(path)!r}")
+    _check_poses(poses, weights)
+    stage = Usd.Stage.Open(_open(source).Flatten())
+    skeletons = _bound_skeletons(stage, source)
+    _check_channels(skeletons, weights, source)
+    _set_timing(stage, weights)
+    world = None if poses is None else _to_stage_axes(stage, head_rotations(poses))
+    for skeleton, channels in skeletons.values():
+        _add_animation(stage, skeleton, channels, weights, world, source)
+    with atomic_path(path) as tmp:
+        _export(stage, tmp)
+    return path
+
+
+def _bound_skeletons(stage, source) -> dict:
+    """``{skeleton path: (Skeleton, channel names)}`` for every blend-shape mesh."""
+    _, _, _, _, UsdGeom, UsdSkel, _, _ = _pxr()
+    found = {}
+    for prim in stage.Traverse():
+        if not (prim.IsA(UsdGeom.Mesh) and prim.HasAPI(UsdSkel.BindingAPI)):
+            continue
+        binding = UsdSkel.BindingAPI(prim)
+        names = [str(n) for n in binding.GetBlendShapesAttr().Get() or []]
+        if not names:
+            continue
+        skeleton = binding.GetInheritedSkeleton()
+        if not skeleton:
+            raise RigError(f"{source}: {prim.GetPath()} has blend shapes but no skeleton (skel:skeleton); "
+                           "UsdSkel plays blend shapes through a skeleton's animation")
+        entry = found.setdefault(str(skeleton.GetPath()), (skeleton, []))
+        entry[1].extend(n for n in names if n not in entry[1])
+    if not found:
+        raise RigError(f"{source} has no meshes with UsdSkel blend shapes to drive")
+    return found
+
+
+def _check_channels(skeletons: dict, weights: Weights, source) -> None:
+    known = {n for _, names in skeletons.values() for n in names}
+    unknown = [n for n in weights.names if n not in known]
+    if unknown:
+        raise RigError(f"weights name blend shapes {source} does not have: {unknown}; it has {sorted(known)}")
+
+
+def _to_stage_axes(stage, rotations: np.ndarray) -> np.ndarray:
+    """glTF-axis (+Y up) rotations in the stage's axes (``upAxis = "Z"``: (x, y, z) -> (x, −z, y))."""
+    _, _, _, _, UsdGeom, _, _, _ = _pxr()
+    if str(UsdGeom.GetStageUpAxis(stage)) != "Z":
+        return rotations
+    a = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    return a @ rotations @ a.T
+
+
+def _add_animation(stage, skeleton, channels, weights: Weights, world, source) -> None:
+    Gf, _, _, Usd, _, UsdSkel, _, Vt = _pxr()
+    joints = list(skeleton.GetJointsAttr().Get() or [])
+    rest = skeleton.GetRestTransformsAttr().Get() or Vt.Matrix4dArray([Gf.Matrix4d(1.0)] * len(joints))
+    translations, rotations, scales = UsdSkel.DecomposeTransforms(rest)
+    animation = UsdSkel.Animation.Define(stage, skeleton.GetPath().AppendChild("keyshape"))
+    animation.CreateJointsAttr(joints)
+    animation.CreateTranslationsAttr(translations)
+    animation.CreateScalesAttr(scales)
+    animation.CreateBlendShapesAttr(channels)
+    columns = [weights.values[:, weights.names.index(n)] if n in weights.names else np.zeros(weights.n_frames)
+               for n in channels]
+    values = np.nan_to_num(np.stack(columns, axis=1), nan=0.0).astype(np.float32)
+    attribute = animation.CreateBlendShapeWeightsAttr()
+    for frame, row in enumerate(values):
+        attribute.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(frame))
+    _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, world, source)
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([animation.GetPath()])
+
+
+def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, world, source) -> None:
+    Gf, _, _, Usd, _, UsdSkel, _, Vt = _pxr()
+    attribute = animation.CreateRotationsAttr()
+    if world is None:
+        attribute.Set(rotations)
+        return
+    head = _head_joint(joints)
+    if head is None:
+        raise RigError(f"{source}: no joint named like 'head' in {skeleton.GetPath()} to carry the head rotation")
+    local = _head_local(skeleton, joints, rest, head, world)
+    quats = list(rotations)
+    for frame, (x, y, z, w) in enumerate(local):
+        quats[head] = Gf.Quatf(float(w), float(x), float(y), float(z))
+        attribute.Set(Vt.QuatfArray(quats), Usd.TimeCode(frame))
+
+
+def _head_joint(joints) -> int | None:
+    from ._gltf_edit import _is_head
+
+    heads = [k for k, joint in enumerate(joints) if _is_head(str(joint).rsplit("/", 1)[-1])]
+    return min(heads, key=lambda k: (str(joints[k]).count("/"), k)) if heads else None
+
+
+def _head_local(skeleton, joints, rest, head: int, world: np.ndarray) -> np.ndarray:
+    """(n_frames, 4) quaternions (x, y, z, w): ``Pᵀ D P R`` in skeleton space (column vectors)."""
+    from scipy.spatial.transform import Rotation
+
+    from ._gltf_edit import _rotation_part, continuous_hemisphere
+
+    _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
+    topology = UsdSkel.Topology(joints)
+    skel_space = UsdSkel.ConcatJointTransforms(topology, rest)
+    to_world = np.asarray(UsdGeom.Xformable(skeleton.GetPrim()).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    s = _rotation_part(to_world[:3, :3].T)  # USD matrices act on row vectors: transpose
+    parent = topology.GetParent(head)
+    p = np.eye(3) if parent < 0 else _rotation_part(np.asarray(skel_space[parent])[:3, :3].T)
+    r = _rotation_part(np.asarray(rest[head])[:3, :3].T)
+    d = np.einsum("ji,fjk,kl->fil", s, world, s)  # D in skeleton space: Sᵀ D S
+    local = np.einsum("ji,fjk,kl,lm->fim", p, d, p, r)  # Pᵀ D P R
+    return continuous_hemisphere(Rotation.from_matrix(local).as_quat())
 
 
 # --------------------------------------------------------------------------- reading
@@ -332,12 +490,13 @@ def _to_gltf_axes(rig: Rig, meters_per_unit: float, up_axis) -> Rig:
 
 
 def read_usd_animation(path) -> UsdAnimation:
-    """Read back the first SkelAnimation of a USD file (weights per time sample).
+    """Read back the SkelAnimation keyshape wrote (else the first) of a USD file, per time sample.
 
     Returns
     -------
     UsdAnimation
-        ``times`` in seconds; ``rotations`` are the first joint's, when time-sampled.
+        ``times`` in seconds; ``rotations`` are the first joint's, when time-sampled (the head's in
+        files :func:`write_usd` writes).
 
     Raises
     ------
@@ -346,7 +505,9 @@ def read_usd_animation(path) -> UsdAnimation:
     """
     _, _, _, Usd, _, UsdSkel, _, _ = _pxr()
     stage = _open(path)
-    animation = next((UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation)), None)
+    animations = [UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation)]
+    ours = [a for a in animations if a.GetPrim().GetName() in ("keyshape", ANIMATION)]
+    animation = (ours or animations or [None])[0]
     if animation is None or not animation.GetBlendShapeWeightsAttr().HasAuthoredValue():
         raise InputError(f"{str(path)!r} has no SkelAnimation with blend-shape weights")
     names = tuple(str(n) for n in animation.GetBlendShapesAttr().Get())
