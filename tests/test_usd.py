@@ -141,6 +141,9 @@ def test_missing_usd_core_says_how_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "pxr", None)
     with pytest.raises(MissingDependencyError, match=r'pip install "keyshape\[usd\]"'):
         usd._pxr()
+    with pytest.raises(MissingDependencyError, match="usd-core is required"):
+        usd.write_usd("a.usda", Rig(np.eye(3), [[0, 1, 2]], np.ones((1, 3, 3)), ("x",)),
+                      Weights(np.zeros((1, 1)), ("x",), 30))
 
 
 # ---------------------------------------------------------------- an artist's stage kept whole
