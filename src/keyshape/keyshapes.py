@@ -19,10 +19,18 @@ Methods
     components (3, or the rank of ``X`` if lower).
 ``"spa"`` (default)
     Successive projection (Gillis & Vavasis 2014), the provably robust algorithm for
-    separable non-negative factorisation, refined by exchanges that lower the
-    non-negative reconstruction error of all frames. If that local search ends above
-    the error of the ``spread`` or ``hull`` set, it is rerun from the better of those,
-    so ``spa`` is never worse than the paper's methods.
+    separable non-negative factorisation, grown one key at a time and refined by
+    exchanges that lower the reconstruction error of all frames; never worse than the
+    ``spread`` or ``hull`` set (see :func:`keyshape._select.spa_steps`).
+
+The error ``spa`` minimises is that of the weights the product solves: ``w >= 0``, and
+``w <= upper`` when a bound is given. With ``upper=1`` a key is only worth its delta at
+full weight, so the keys are strong, real expressions and never a frame near the neutral
+that the fit would scale up several times.
+
+The number of keys can be chosen per region from an error target (``n_keys="auto"``,
+:func:`choose_n_keys`): the smallest ``K`` whose RMS reconstruction error is below
+``max_error`` % of the inter-ocular distance.
 
 References
 ----------
@@ -34,28 +42,47 @@ References
 
 from __future__ import annotations
 
-from typing import Literal
+from itertools import islice
+from typing import Literal, NamedTuple
 
 import numpy as np
 
 from . import _select
+from ._defaults import DEFAULT_UPPER
 from .containers import KeyShapes, Track
 from .exceptions import InputError
+from .metrics import face_scale
 
-__all__ = ["find_keyshapes", "METHODS"]
+__all__ = ["find_keyshapes", "choose_n_keys", "KChoice", "METHODS", "MAX_ERROR", "MAX_KEYS"]
 
 Method = Literal["spa", "spread", "hull"]
 METHODS: tuple[str, ...] = ("spa", "spread", "hull")
+MAX_ERROR = 2.0  # % of the inter-ocular distance: the default target of n_keys="auto"
+MAX_KEYS = 24  # default cap of n_keys="auto" per region: a sculpt list an artist can still make
+
+
+class KChoice(NamedTuple):
+    """The number of keys chosen for a region and the RMS error it reaches.
+
+    ``error`` is in % of :func:`keyshape.metrics.face_scale` (the inter-ocular distance for
+    MediaPipe and iBUG-68 tracks); it is above the target only when the cap was reached.
+    """
+
+    k: int
+    error: float
 
 
 def find_keyshapes(
     aligned: Track,
     *,
     regions: dict[str, np.ndarray],
-    n_keys: int | dict[str, int] = 8,
+    n_keys: int | dict[str, int] | Literal["auto"] = 8,
     method: Method = "spa",
     neutral_frame: int,
     stable: np.ndarray | None = None,
+    upper: float | None = DEFAULT_UPPER,
+    max_error: float = MAX_ERROR,
+    max_keys: int = MAX_KEYS,
 ) -> KeyShapes:
     """Choose ``n_keys`` real frames per region as key shapes.
 
@@ -65,13 +92,23 @@ def find_keyshapes(
         ``points (n_frames, n_landmarks, n_dims)`` with head motion removed (see ``align``).
     regions : dict str -> (n_region_landmarks,) int, keyword-only
         Landmark indices of each region; ``{"whole": np.arange(n_landmarks)}`` for one.
-    n_keys : int or dict str -> int, keyword-only
-        Key shapes per region (the same for all, or one per region).
+    n_keys : int, dict str -> int, or "auto", keyword-only
+        Key shapes per region (the same for all, or one per region), or ``"auto"``: the
+        fewest whose RMS error is below ``max_error`` (:func:`choose_n_keys`).
     method : {"spa", "spread", "hull"}, keyword-only
     neutral_frame : int, keyword-only
         A valid frame; it is never a key, and the deltas are measured from it.
     stable : (n_stable,) int, optional, keyword-only
         The landmarks used for alignment, recorded in the result.
+    upper : float or None, keyword-only
+        Upper bound of the weights the keys will be solved with (``0 <= w <= upper``);
+        ``spa`` and ``"auto"`` measure the error under it. Default 1, as the product solves
+        (:func:`keyshape.pipeline.solve_take`). None: no bound, the paper's NNLS; a key and
+        a weaker frame of the same shape then fit equally well, and either may be chosen.
+    max_error : float, keyword-only
+        Target RMS error of ``n_keys="auto"``, in % of the inter-ocular distance.
+    max_keys : int, keyword-only
+        Most keys per region with ``n_keys="auto"``.
 
     Returns
     -------
@@ -100,25 +137,28 @@ def find_keyshapes(
     ('upper_00', 'upper_01', 'lower_00', 'lower_01')
     >>> sorted(keys.frames.tolist()) == sorted(perf.extreme_frames.tolist())
     True
+    >>> auto = find_keyshapes(aligned, regions=perf.regions, n_keys="auto", max_error=0.5, upper=1.0,
+    ...                       neutral_frame=perf.neutral_frame)
+    >>> auto.names == keys.names
+    True
     """
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}; got {method!r}")
     regions = _check_regions(regions, aligned.n_landmarks)
-    counts = _check_counts(n_keys, regions)
     neutral_frame = _check_neutral(neutral_frame, aligned)
-    candidates = np.flatnonzero(aligned.valid)
-    candidates = candidates[candidates != neutral_frame]
+    upper = _check_upper(upper)
+    candidates = _candidates(aligned, neutral_frame)
+    if isinstance(n_keys, str) and n_keys == "auto":
+        picked = _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys)
+        rows = {region: pick[0] for region, pick in picked.items()}
+    else:
+        counts = _check_counts(n_keys, regions)
+        rows = {region: _select_rows(_region_data(aligned, candidates, neutral_frame, landmarks),
+                                     counts[region], method, upper, region)
+                for region, landmarks in regions.items()}
+    frames = [int(candidates[i]) for region in regions for i in rows[region]]
+    key_regions = [region for region in regions for _ in rows[region]]
     neutral = aligned.points[neutral_frame]
-    frames, key_regions = [], []
-    for region, landmarks in regions.items():
-        if counts[region] > candidates.size:
-            raise InputError(
-                f"region {region!r} asks for {counts[region]} keys but the track has only "
-                f"{candidates.size} valid frames besides the neutral one"
-            )
-        data = (aligned.points[candidates][:, landmarks] - neutral[landmarks]).reshape(candidates.size, -1)
-        frames.extend(candidates[_select_rows(data, counts[region], method)])
-        key_regions.extend([region] * counts[region])
     return KeyShapes(
         neutral=neutral,
         deltas=_region_deltas(aligned.points, neutral, frames, key_regions, regions),
@@ -132,15 +172,107 @@ def find_keyshapes(
     )
 
 
-def _select_rows(data: np.ndarray, n_keys: int, method: str) -> np.ndarray:
+def choose_n_keys(
+    aligned: Track,
+    *,
+    regions: dict[str, np.ndarray],
+    neutral_frame: int,
+    method: Method = "spa",
+    max_error: float = MAX_ERROR,
+    max_keys: int = MAX_KEYS,
+    upper: float | None = DEFAULT_UPPER,
+) -> dict[str, KChoice]:
+    """The fewest key shapes per region whose reconstruction error is below a target.
+
+    For ``K = 1, 2, …`` the region's keys are chosen by ``method`` (as
+    :func:`find_keyshapes` would choose ``K`` of them) and every valid frame is fitted by
+    its best blend ``0 <= w <= upper``; the first ``K`` whose RMS error over the region's
+    landmarks and the valid frames is below ``max_error`` is taken. The search stops at
+    ``max_keys`` (or at the number of frames), whatever the error.
+
+    Parameters
+    ----------
+    aligned : Track
+        ``points (n_frames, n_landmarks, n_dims)``, head motion removed.
+    regions : dict str -> (n_region_landmarks,) int, keyword-only
+    neutral_frame : int, keyword-only
+    method : {"spa", "spread", "hull"}, keyword-only
+    max_error : float, keyword-only
+        Target RMS error in % of :func:`keyshape.metrics.face_scale` of the neutral (the
+        inter-ocular distance when the scheme has eye corners). Default 2 %, about twice
+        the error the tracker's own jitter leaves.
+    max_keys : int, keyword-only
+        Cap per region (default 24).
+    upper : float or None, keyword-only
+        Upper bound of the weights, as they will be solved (default 1, as the product).
+
+    Returns
+    -------
+    dict str -> KChoice
+        ``(k, error)`` per region; ``error > max_error`` only when the cap was reached.
+
+    Examples
+    --------
+    >>> from keyshape.datasets import make_performance
+    >>> perf = make_performance(n_keys=6, noise=0.0)
+    >>> choices = choose_n_keys(perf.track.with_points(perf.canonical), regions=perf.regions,
+    ...                         neutral_frame=perf.neutral_frame, upper=1.0, max_error=0.5)
+    >>> {region: k for region, (k, error) in choices.items()}
+    {'upper': 3, 'lower': 3}
+    """
+    if method not in METHODS:
+        raise InputError(f"method must be one of {METHODS}; got {method!r}")
+    regions = _check_regions(regions, aligned.n_landmarks)
+    neutral_frame = _check_neutral(neutral_frame, aligned)
+    picked = _auto(aligned, regions, neutral_frame, method, _check_upper(upper), max_error, max_keys)
+    return {region: KChoice(len(rows), error) for region, (rows, error) in picked.items()}
+
+
+def _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys):
+    """region -> (rows of the candidates, RMS error in %): the fewest keys below ``max_error``."""
+    max_error, max_keys = _check_target(max_error, max_keys)
+    candidates = _candidates(aligned, neutral_frame)
+    n_valid = candidates.size + 1  # the neutral frame counts, with zero error
+    scale, _ = face_scale(aligned.points[neutral_frame])
+    out = {}
+    for region, landmarks in regions.items():
+        data = _region_data(aligned, candidates, neutral_frame, landmarks)
+        to_percent = 100.0 / (scale * np.sqrt(n_valid * len(landmarks)))  # sqrt(Σ|r|²) -> RMS %
+        objective = _select.Objective(data, upper)
+        rows, error = np.zeros(0, dtype=int), np.inf
+        for rows in islice(_select.steps(data, method, objective=objective), max_keys):
+            error = np.sqrt(objective(rows)) * to_percent
+            if error < max_error:
+                break
+        out[region] = (rows, float(error))
+    return out
+
+
+def _candidates(aligned: Track, neutral_frame: int) -> np.ndarray:
+    """``(n_candidates,)`` int: the valid frames but the neutral one."""
+    candidates = np.flatnonzero(aligned.valid)
+    return candidates[candidates != neutral_frame]
+
+
+def _region_data(aligned: Track, candidates: np.ndarray, neutral_frame: int, landmarks) -> np.ndarray:
+    """``X (n_candidates, n_region_landmarks · n_dims)``: candidate frames − neutral frame."""
+    points = aligned.points[candidates][:, landmarks] - aligned.points[neutral_frame, landmarks]
+    return points.reshape(candidates.size, -1)
+
+
+def _select_rows(data: np.ndarray, n_keys: int, method: str, upper: float | None,
+                 region: str) -> np.ndarray:
     """``(n_keys,)`` distinct rows of ``data (n_candidates, n_features)``."""
+    if n_keys > len(data):
+        raise InputError(f"region {region!r} asks for {n_keys} keys but the track has only "
+                         f"{len(data)} valid frames besides the neutral one")
     if n_keys == 0:
         return np.zeros(0, dtype=int)
     if method == "spread":
         return _select.spread(data, n_keys)
     if method == "hull":
         return _select.hull(data, n_keys)
-    return _select.spa_refined(data, n_keys)
+    return _select.spa(data, n_keys, upper=upper)
 
 
 def _region_deltas(points, neutral, frames, key_regions, regions) -> np.ndarray:
@@ -179,6 +311,8 @@ def _check_regions(regions, n_landmarks: int) -> dict[str, np.ndarray]:
 
 
 def _check_counts(n_keys, regions: dict) -> dict[str, int]:
+    if isinstance(n_keys, str):
+        raise InputError(f"n_keys must be an int, a dict of region -> int, or 'auto'; got {n_keys!r}")
     counts = n_keys if isinstance(n_keys, dict) else {name: n_keys for name in regions}
     missing = set(regions) - set(counts)
     if missing:
@@ -195,3 +329,23 @@ def _check_neutral(neutral_frame, aligned: Track) -> int:
     if not aligned.valid[neutral_frame]:
         raise InputError(f"neutral_frame {neutral_frame} has no face (NaN); choose a valid frame")
     return int(neutral_frame)
+
+
+def _check_upper(upper) -> float | None:
+    if upper is None:
+        return None
+    try:
+        value = float(upper)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not value > 0:
+        raise InputError(f"upper must be None or a number > 0; got {upper!r}")
+    return value
+
+
+def _check_target(max_error, max_keys) -> tuple[float, int]:
+    if not isinstance(max_error, (int, float, np.number)) or not max_error > 0:
+        raise InputError(f"max_error must be a number > 0 (% of the inter-ocular distance); got {max_error!r}")
+    if not isinstance(max_keys, (int, np.integer)) or max_keys < 1:
+        raise InputError(f"max_keys must be an int >= 1; got {max_keys!r}")
+    return float(max_error), int(max_keys)

@@ -2,7 +2,9 @@
 
 The reconstruction of a frame is its best *non-negative* blend of the key shapes of each
 region (Chuang & Bregler 2002, Eq. 1 in delta form), found by non-negative least squares
-(Lawson & Hanson 1974). Errors are RMS landmark distances in aligned (canonical) units.
+(Lawson & Hanson 1974), optionally with the weights bounded above as the product solves them.
+Errors are RMS landmark distances in aligned (canonical) units; :func:`face_scale` gives the
+length that makes them relative (% of the inter-ocular distance).
 """
 
 from __future__ import annotations
@@ -11,13 +13,16 @@ import numpy as np
 from scipy.optimize import nnls
 
 from .containers import KeyShapes, Track, Weights
+from .decompose import solve_nnls
 from .exceptions import InputError
+from .schemes import eye_corners
 
-__all__ = ["reconstruction_error", "nonnegative_fit"]
+__all__ = ["reconstruction_error", "nonnegative_fit", "face_scale"]
 
 
 def reconstruction_error(
-    aligned: Track, keys: KeyShapes, *, weights: Weights | np.ndarray | None = None
+    aligned: Track, keys: KeyShapes, *, weights: Weights | np.ndarray | None = None,
+    upper: float | None = None,
 ) -> dict[str, float]:
     """RMS reconstruction error of each region of an aligned take.
 
@@ -32,6 +37,9 @@ def reconstruction_error(
     weights : Weights or (n_frames, n_keys) float, optional, keyword-only
         Per-frame weights to evaluate; frames with NaN weights are skipped. If None, each
         region's weights are the exact non-negative least-squares fit of its keys.
+    upper : float or None, keyword-only
+        Upper bound of the fitted weights (``0 <= w <= upper``; None for none), when
+        ``weights`` is None.
 
     Returns
     -------
@@ -58,7 +66,49 @@ def reconstruction_error(
             f"aligned points {aligned.points.shape[1:]} do not match the key shapes {keys.neutral.shape}"
         )
     fitted = None if weights is None else _check_weights(weights, aligned.n_frames, keys.n_keys)
-    return {region: _region_error(aligned, keys, region, fitted) for region in keys.regions}
+    upper = _check_upper(upper)
+    return {region: _region_error(aligned, keys, region, fitted, upper) for region in keys.regions}
+
+
+def face_scale(neutral: np.ndarray) -> tuple[float, str]:
+    """The length errors are measured against, and its unit name.
+
+    The inter-ocular distance (outer eye corners, :func:`keyshape.schemes.eye_corners`,
+    in the image plane) when the landmark scheme has eye corners; otherwise twice the RMS
+    distance of the landmarks from their centroid (image plane), "face size". The same
+    lengths as the take report's (:func:`keyshape.report.face_scale`).
+
+    Parameters
+    ----------
+    neutral : (n_landmarks, n_dims) float
+
+    Returns
+    -------
+    (length, unit) : (float, str)
+        An error ``e`` is ``100 * e / length`` in ``unit``: ``"% inter-ocular"`` or ``"% face size"``.
+
+    Examples
+    --------
+    >>> face_scale(np.array([[0.0, 0.0], [3.0, 4.0]]))
+    (5.0, '% face size')
+    """
+    neutral = np.asarray(neutral, dtype=float)
+    corners = eye_corners(len(neutral))
+    if corners is not None:
+        length = float(np.linalg.norm(neutral[corners[0], :2] - neutral[corners[1], :2]))
+        if length > 0:
+            return length, "% inter-ocular"
+    xy = neutral[:, :2]
+    return float(2 * np.sqrt(((xy - xy.mean(axis=0)) ** 2).sum(axis=1).mean())), "% face size"
+
+
+def _check_upper(upper) -> float | None:
+    if upper is None:
+        return None
+    value = float(upper)
+    if not value > 0:
+        raise InputError(f"upper must be None or a number > 0; got {upper!r}")
+    return value
 
 
 def _check_weights(weights, n_frames: int, n_keys: int) -> np.ndarray:
@@ -68,15 +118,15 @@ def _check_weights(weights, n_frames: int, n_keys: int) -> np.ndarray:
     return values
 
 
-def _region_error(aligned: Track, keys: KeyShapes, region: str, weights) -> float:
+def _region_error(aligned: Track, keys: KeyShapes, region: str, weights, upper) -> float:
     """RMS error ``sqrt(mean |x - x̂|²)`` on one region's landmarks."""
     lm, k = keys.regions[region], keys.keys_of(region)
     ok = aligned.valid if weights is None else aligned.valid & np.isfinite(weights[:, k]).all(axis=1)
     targets = (aligned.points[ok][:, lm] - keys.neutral[lm]).reshape(ok.sum(), -1)
     bases = keys.deltas[k][:, lm].reshape(len(k), -1)
-    w = nonnegative_fit(targets, bases) if weights is None else weights[ok][:, k]
     if targets.size == 0:
         return float("nan")
+    w = solve_nnls(bases.T, targets, upper=upper) if weights is None else weights[ok][:, k]
     residual = targets - w @ bases
     return float(np.sqrt((residual**2).sum() / (targets.shape[0] * len(lm))))
 
