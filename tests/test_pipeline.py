@@ -72,3 +72,22 @@ def test_takes_must_share_a_landmark_scheme(perf):
     other = Track(perf.track.points[:, :30], perf.track.fps)
     with pytest.raises(ValueError, match="b.npz: has 30 landmarks"):
         discover_keys([perf.track, other], regions="whole", take=["a.npz", "b.npz"])
+
+
+def test_gaps_are_bridged_or_held(perf):
+    points = np.array(perf.track.points)
+    points[100:106] = np.nan   # short: bridged by the smooth solve
+    points[200:] = np.nan      # long and at the end: held at the neutral
+    track = Track(points, perf.track.fps)
+    keys = discover_keys(track, regions=perf.regions, n_keys=2, neutral=perf.neutral_frame,
+                         stable=perf.stable)
+    solved = solve_take(track, keys, smoothness=0.1)
+    values = solved.weights.values
+    assert np.isfinite(values).all()
+    assert (values[200:] == 0).all()
+    around = np.concatenate([values[94:100], values[106:112]])
+    lo, hi = around.min(axis=0) - 0.05, around.max(axis=0) + 0.05
+    assert ((values[100:106] >= lo) & (values[100:106] <= hi)).all()  # a smooth bridge, not zeros
+    assert solved.gaps.bridged == ((100, 6),) and solved.gaps.held == ((200, 40),)
+    per_frame = solve_take(track, keys, smoothness=0, upper=None).weights.values
+    assert np.isnan(per_frame[100:106]).all() and np.isnan(per_frame[200:]).all()

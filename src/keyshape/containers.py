@@ -126,6 +126,14 @@ class Track:
             points, self.fps, self.image_size, self.blendshapes, self.blendshape_names, self.head_matrix
         )
 
+    def __getitem__(self, frames: slice) -> Track:
+        """The frames ``frames`` (a slice) of the take, with their scores and head matrices."""
+        if not isinstance(frames, slice):
+            raise TypeError(f"a Track is sliced by frames, e.g. track[10:50]; got {frames!r}")
+        pick = lambda a: None if a is None else a[frames]  # noqa: E731
+        return Track(self.points[frames], self.fps, self.image_size, pick(self.blendshapes),
+                     self.blendshape_names, pick(self.head_matrix))
+
     def __repr__(self) -> str:
         return (
             f"Track(n_frames={self.n_frames}, n_landmarks={self.n_landmarks}, "

@@ -128,12 +128,25 @@ def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMO
         )
     stable = keys.stable if keys.stable is not None else stable_points(track.n_landmarks)
     aligned, poses = align(track, reference=keys.neutral, stable=stable)
-    weights = solve_weights(aligned, keys, upper=upper, smoothness=smoothness, convex=convex)
     gaps = gap_report(track.valid, max_bridge=int(round(max_bridge * track.fps)))
-    if smoothness > 0 and gaps.held:
-        weights = Weights(hold_neutral(weights.values, gaps), weights.names, weights.fps)
+    values = np.full((track.n_frames, keys.n_keys), np.nan)
+    for start, stop in _segments(gaps):  # held gaps split the take: no data, nothing to bridge
+        values[start:stop] = solve_weights(aligned[start:stop], keys, upper=upper, smoothness=smoothness,
+                                           convex=convex).values
+    if smoothness > 0:
+        values = hold_neutral(values, gaps)
+    weights = Weights(values, keys.names, track.fps)
     gaze = estimate_gaze(aligned.points, reference=keys.neutral) if track.n_landmarks == 478 else None
     return Solved(weights, poses, aligned, gaps, gaze)
+
+
+def _segments(gaps: GapReport) -> list[tuple[int, int]]:
+    """``(start, stop)`` runs of frames between the held gaps (each starts and ends with a face)."""
+    held = np.zeros(gaps.n_frames, dtype=bool)
+    for start, length in gaps.held:
+        held[start:start + length] = True
+    edges = np.flatnonzero(np.diff(np.concatenate([[1], held.astype(np.int8), [1]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
 
 def head_poses(track: Track) -> Poses:
