@@ -85,9 +85,9 @@ def test_gaps_are_bridged_or_held(perf):
     values = solved.weights.values
     assert np.isfinite(values).all()
     assert (values[200:] == 0).all()
-    around = np.concatenate([values[94:100], values[106:112]])
-    lo, hi = around.min(axis=0) - 0.05, around.max(axis=0) + 0.05
-    assert ((values[100:106] >= lo) & (values[100:106] <= hi)).all()  # a smooth bridge, not zeros
+    bridge = values[98:108]  # the gap and a frame on each side
+    assert np.abs(np.diff(bridge, 2, axis=0)).max() < 0.1  # a smooth curve across the gap
+    assert np.abs(values[100:106] - (values[99] + values[106]) / 2).max() < 0.5  # not dropped to 0
     assert solved.gaps.bridged == ((100, 6),) and solved.gaps.held == ((200, 40),)
     per_frame = solve_take(track, keys, smoothness=0, upper=None).weights.values
     assert np.isnan(per_frame[100:106]).all() and np.isnan(per_frame[200:]).all()
