@@ -92,7 +92,7 @@ def scipy_loop(A, B):
     return np.array([scipy.optimize.nnls(A, b)[0] for b in B])
 
 
-def bench_nnls(n_frames: int, subset: int, m: int, keys=(8, 16, 24), repeats: int = 2):
+def bench_nnls(n_frames: int, subset: int, m: int, keys=(8, 16, 24), repeats: int = 3):
     rows = []
     for k in keys:
         rng = np.random.default_rng(k)
@@ -100,7 +100,7 @@ def bench_nnls(n_frames: int, subset: int, m: int, keys=(8, 16, 24), repeats: in
         _, B = performance(A, n_frames, rng, smooth=False)
         ours, ours_cpu = best_time(lambda A=A, B=B: solve_nnls(A, B), repeats)
         ref = []
-        loop, loop_cpu = best_time(lambda A=A, B=B, ref=ref: ref.append(scipy_loop(A, B[:subset])), 1)
+        loop, loop_cpu = best_time(lambda A=A, B=B, ref=ref: ref.append(scipy_loop(A, B[:subset])), repeats)
         scale = n_frames / subset  # the loop is linear in frames: extrapolate
         agree = float(np.abs(solve_nnls(A, B[:subset]) - ref[0]).max())
         rows.append({"n_keys": k, "n_frames": n_frames, "m": m, "ours_s": ours, "ours_cpu_s": ours_cpu,
@@ -192,7 +192,7 @@ def machine():
 
 def markdown(result) -> str:
     out = ["## decompose benchmark", "", "```", json.dumps(result["machine"]), "```", "",
-           "Times are the best of the repeats, as wall-clock seconds and as CPU seconds of this",
+           "Times are the best of 3 runs (2 for the spacetime rows), as wall-clock seconds and as CPU seconds of this",
            "process (steadier on a shared machine); speedups are given for both.", ""]
     out += ["### Per-frame NNLS: solve_nnls vs a Python loop of scipy.optimize.nnls", "",
             ("| K | frames | m | keyshape wall s (CPU s) | frames/s wall | scipy loop wall s (CPU s) "

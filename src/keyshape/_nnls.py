@@ -261,27 +261,37 @@ def _block_pivoting(gram, C, upper, state, max_sweeps=None):
     todo = np.arange(n)
     c_max, g_max = np.abs(C).max(axis=1, keepdims=True), np.abs(gram.G).max()
     best, budget = np.full(n, k + 1), np.full(n, 3)
+    bounded = bool(np.isfinite(upper).any())
     for _ in range(max_sweeps or 2 * k + 10):
         every = len(todo) == n
         c, s = (C, state) if every else (C[todo], state[todo])
         x, y = _evaluate(gram, c, upper, s)
-        scale = 1.0 + np.abs(x).max(axis=1, keepdims=True)
-        tol_y = _TOL * ((c_max if every else c_max[todo]) + g_max * scale)
-        sign = (s == UPPER).view(np.int8) - (s == LOWER).view(np.int8)  # +1 at u, −1 at 0
-        bad = ((s == FREE) & ((x < -_TOL * scale) | (x > upper + _TOL * scale))) | (y * sign > tol_y)
+        bad = _violations(x, y, s, upper if bounded else None, c_max if every else c_max[todo], g_max)
         n_bad = bad.sum(axis=1)
-        X[todo] = x
         # Kim & Park: exchange everything while the infeasible count falls (or for 3 sweeps)
         improved = n_bad < best[todo]
         best[todo] = np.where(improved, n_bad, best[todo])
         budget[todo] = np.where(improved, 3, budget[todo] - 1)
         keep = (n_bad > 0) & (budget[todo] >= 0)
+        X[todo[~keep]] = x[~keep]  # solved, or stalled (the active-set finish starts there)
         todo, x, bad, s = todo[keep], x[keep], bad[keep], s[keep]
         if not len(todo):
             break
         to_bound = np.where(x < 0, LOWER, UPPER)
         state[todo] = np.where(bad, np.where(s == FREE, to_bound, FREE), s)
+    X[todo] = x
     return X, state, np.union1d(np.flatnonzero(budget < 0), todo)
+
+
+def _violations(x, y, s, upper, c_max, g_max):
+    """(n, K) bool: KKT tests failed beyond ``_TOL`` of the row's scale (``upper`` None: none)."""
+    scale = 1.0 + np.abs(x).max(axis=1, keepdims=True)
+    tol_x, tol_y = _TOL * scale, _TOL * (c_max + g_max * scale)
+    free = s == FREE
+    if upper is None:  # plain NNLS: free and negative, or at 0 with a negative gradient
+        return np.where(free, x < -tol_x, y < -tol_y)
+    out = (x < -tol_x) | (x > upper + tol_x)
+    return np.where(free, out, np.where(s == LOWER, y < -tol_y, y > tol_y))
 
 
 def _active_set(gram, C, upper, X, state, max_iter=None):
@@ -417,21 +427,24 @@ def nnls_gram(G, C, upper=None, convex=False):
     """
     n, k = C.shape
     upper = np.full(k, np.inf) if upper is None else upper
-    out = np.full((n, k), np.nan)
-    rows = np.flatnonzero(np.isfinite(C).all(axis=1))
-    if not len(rows) or not k:
-        out[rows] = 0.0
+    valid = np.isfinite(C).all(axis=1)
+    if not valid.all():  # NaN frames: solve the others, NaN rows out
+        out = np.full((n, k), np.nan)
+        out[valid] = nnls_gram(G, C[valid], upper, convex) if valid.any() else 0.0
         return out
+    if not k or not n:
+        return np.zeros((n, k))
     d = equilibration(G)
-    gram, C, u = Gram.from_matrix(d[:, None] * G * d), C[rows] * d, upper / d
+    gram, C, u = Gram.from_matrix(d[:, None] * G * d), C * d, upper / d
     V, state = box_solve(gram, C, u, initial_state(C @ gram.H, u))
     if gram.ridge:
         V = _undo_ridge(gram, C, u, V, state)
     if convex:
         V = sum_newton(gram, C, u, V, state, d)
-    W = np.where(V >= u, upper, np.minimum(V * d, upper))  # a bound stays exact
-    out[rows] = cap_sum(W) if convex else W
-    return out
+    W = V * d
+    if np.isfinite(upper).any():
+        W = np.where(V >= u, upper, np.minimum(W, upper))  # a bound stays exact
+    return cap_sum(W) if convex else W
 
 
 def _undo_ridge(gram, C, upper, V, state, steps=3):
