@@ -192,8 +192,8 @@ def machine():
 
 def markdown(result) -> str:
     out = ["## decompose benchmark", "", "```", json.dumps(result["machine"]), "```", "",
-           "Times are the best of 3 runs (2 for the spacetime rows), as wall-clock seconds and as CPU seconds of this",
-           "process (steadier on a shared machine); speedups are given for both.", ""]
+           "Times are the best of 3 runs (2 for the spacetime rows), as wall-clock seconds and as",
+           "CPU seconds of this process (steadier on a shared machine); speedups are given for both.", ""]
     out += ["### Per-frame NNLS: solve_nnls vs a Python loop of scipy.optimize.nnls", "",
             ("| K | frames | m | keyshape wall s (CPU s) | frames/s wall | scipy loop wall s (CPU s) "
             "| speedup wall / CPU | max abs diff |"),
