@@ -17,6 +17,16 @@ def demo_clip() -> Path:
 
 
 @pytest.fixture(scope="session")
+def demo_out(tmp_path_factory) -> Path:
+    """An output folder of the real `keyshape demo`, made once per session. Treat it as read-only."""
+    from keyshape.cli import main
+
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "-o", str(out), "-q"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
 def real_track(demo_clip):
     """The real clip tracked with the real vendored MediaPipe model (no mocks)."""
     from keyshape.capture import track_video

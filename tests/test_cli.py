@@ -20,13 +20,6 @@ from gltf_validator import validate
 VERBS = ["track", "keys", "solve", "retarget", "run", "demo"]
 
 
-@pytest.fixture(scope="session")
-def demo_out(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo")
-    assert main(["demo", "-o", str(out), "-q"]) == 0
-    return out
-
-
 def _cli(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "keyshape", *map(str, args)], capture_output=True,
                           text=True, cwd=cwd, timeout=600)

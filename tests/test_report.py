@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -170,14 +171,16 @@ def test_report_verb_without_preview(tmp_path):
 
 
 @pytest.mark.slow
-def test_demo_take_end_to_end(tmp_path):
-    """The real clip: `keyshape demo`, then the extras; the character moves with the expression."""
-    from keyshape.cli import main
+def test_demo_take_end_to_end(demo_out, tmp_path):
+    """The real clip: `keyshape demo` wrote the extras; the character moves with the expression."""
+    import shutil
+
     from keyshape.io.keys_json import load_keys
     from keyshape.io.weights_csv import load_weights_csv
 
-    assert main(["demo", "-o", str(tmp_path), "-q"]) == 0
-    result = write_take_extras(tmp_path, progress=False)
+    assert {"preview.mp4", "report.html", "keyshapes.png", "weights.png"} <= {p.name for p in demo_out.iterdir()}
+    tmp_path = Path(shutil.copytree(demo_out, tmp_path / "demo"))
+    result = write_take_extras(tmp_path, progress=False, preview=False)  # keeps the demo's preview
     numbers = result.numbers
     assert numbers["frames"] == 472 and numbers["detection_rate"] >= 95
     assert {r: v["keys"] for r, v in numbers["regions"].items()} == {"upper": 8, "lower": 8}

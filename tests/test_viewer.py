@@ -80,11 +80,9 @@ def small_take(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def demo_take(tmp_path_factory) -> Path:
-    """An output folder of the real `keyshape demo` (about a minute, once per session)."""
-    out = tmp_path_factory.mktemp("viewer-demo")
-    assert main(["demo", "-o", str(out), "-q"]) == 0
-    return out
+def demo_take(demo_out) -> Path:
+    """An output folder of the real `keyshape demo` (shared with the other tests)."""
+    return demo_out
 
 
 class _Served:

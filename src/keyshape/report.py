@@ -33,6 +33,7 @@ import numpy as np
 
 from .containers import KeyShapes, Track, Weights
 from .exceptions import InputError
+from .filters import find_gaps
 from .io.atomic import atomic_path
 from .schemes import eye_corners, stable_points
 
@@ -160,9 +161,8 @@ def gap_runs(valid: np.ndarray) -> tuple[int, int]:
     >>> gap_runs(np.array([True, False, False, True, False]))
     (2, 2)
     """
-    missing = np.concatenate([[0], (~np.asarray(valid, dtype=bool)).astype(np.int8), [0]])
-    starts, stops = np.flatnonzero(np.diff(missing) == 1), np.flatnonzero(np.diff(missing) == -1)
-    return len(starts), int((stops - starts).max()) if len(starts) else 0
+    gaps = find_gaps(valid)
+    return len(gaps), max((n for _, n in gaps), default=0)
 
 
 def take_numbers(track: Track, keys: KeyShapes, fit: FitQuality) -> dict:
