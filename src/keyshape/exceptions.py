@@ -34,3 +34,7 @@ class DegenerateFrameWarning(UserWarning):
 
 class ConvergenceWarning(UserWarning):
     """An iterative solver stopped before its tolerance was met."""
+
+
+class RenderFallbackWarning(RuntimeWarning):
+    """OpenGL (moderngl on EGL) is unavailable: the slow numpy rasteriser is used instead."""

@@ -19,6 +19,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from ..exceptions import RenderFallbackWarning
 from .camera import Camera, frame_points
 from .raster import NumpyRenderer
 
@@ -27,9 +28,6 @@ __all__ = ["Renderer", "make_renderer", "Camera", "frame_points", "NumpyRenderer
 
 Backend = Literal["auto", "gl", "numpy"]
 
-
-class RenderFallbackWarning(RuntimeWarning):
-    """OpenGL (moderngl on EGL) is unavailable: the slow numpy rasteriser is used instead."""
 
 
 class Renderer(Protocol):
