@@ -3,11 +3,35 @@
 Implements Chuang & Bregler, *Performance Driven Facial Animation using Blendshape
 Interpolation* (Stanford CS-TR-2002-02): track a face, discover key shapes (real frames),
 write every frame as a non-negative blend of them, and drive any character with the weights.
+
+The pipeline, one module per stage::
+
+    capture.track_video  ->  align.align  ->  keyshapes.find_keyshapes  ->  decompose.solve_weights
+        ->  retarget.retarget  ->  io.export.export        (render / report / viewer to see it)
+
+The stage functions are imported on first use, so ``import keyshape`` stays light.
 """
+
+from importlib import import_module
 
 from .containers import KeyShapes, Poses, Rig, Track, Weights, blend
 from .exceptions import KeyshapeError
 
 __version__ = "0.1.0"
 
-__all__ = ["Track", "Poses", "KeyShapes", "Weights", "Rig", "blend", "KeyshapeError", "__version__"]
+_LAZY = {
+    "track_video": "capture", "align": "align", "choose_neutral": "align",
+    "find_keyshapes": "keyshapes", "solve_weights": "decompose", "discover_keys": "pipeline",
+    "solve_take": "pipeline", "load_rig": "rig", "Mapping": "retarget", "retarget": "retarget",
+    "export": "io.export", "render_preview": "render", "write_take_extras": "report",
+    "run_take": "workflow", "make_performance": "datasets", "estimate_gaze": "gaze",
+}
+
+__all__ = ["Track", "Poses", "KeyShapes", "Weights", "Rig", "blend", "KeyshapeError", "__version__",
+           *_LAZY]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module 'keyshape' has no attribute {name!r}")
