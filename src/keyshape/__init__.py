@@ -9,7 +9,8 @@ The pipeline, one module per stage::
     capture.track_video  ->  align.align  ->  keyshapes.find_keyshapes  ->  decompose.solve_weights
         ->  retarget.retarget  ->  io.export.export        (render / report / viewer to see it)
 
-The stage functions are imported on first use, so ``import keyshape`` stays light.
+The stage functions are imported on first use, so ``import keyshape`` stays light
+(``keyshape.align`` and ``keyshape.retarget`` are the modules of those stages).
 """
 
 from importlib import import_module
@@ -20,9 +21,9 @@ from .exceptions import KeyshapeError
 __version__ = "0.1.0"
 
 _LAZY = {
-    "track_video": "capture", "align": "align", "choose_neutral": "align",
+    "track_video": "capture", "choose_neutral": "align",
     "find_keyshapes": "keyshapes", "solve_weights": "decompose", "discover_keys": "pipeline",
-    "solve_take": "pipeline", "load_rig": "rig", "Mapping": "retarget", "retarget": "retarget",
+    "solve_take": "pipeline", "load_rig": "rig", "Mapping": "retarget",
     "export": "io.export", "render_preview": "render", "write_take_extras": "report",
     "run_take": "workflow", "make_performance": "datasets", "estimate_gaze": "gaze",
 }
