@@ -32,7 +32,13 @@ __all__ = ["Track", "Poses", "KeyShapes", "Weights", "Rig", "blend", "KeyshapeEr
            *_LAZY]
 
 
+_STAGES = ("capture", "align", "keyshapes", "decompose", "retarget", "rig", "io", "render", "report",
+           "pipeline", "workflow", "schemes", "filters", "gaze", "metrics", "datasets")
+
+
 def __getattr__(name: str):
     if name in _LAZY:
         return getattr(import_module(f".{_LAZY[name]}", __name__), name)
+    if name in _STAGES:
+        return import_module(f".{name}", __name__)
     raise AttributeError(f"module 'keyshape' has no attribute {name!r}")
