@@ -1,14 +1,16 @@
-"""Key-shape selection: real frames, planted extremes, SPA quality, determinism, validation."""
+"""Key-shape selection: real frames, planted extremes, SPA quality, strong keys under a bound,
+automatic K, determinism, validation."""
 
 import numpy as np
 import pytest
 
+from keyshape import _select
 from keyshape.align import align
-from keyshape.containers import KeyShapes
+from keyshape.containers import KeyShapes, Track
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
-from keyshape.keyshapes import METHODS, find_keyshapes
-from keyshape.metrics import reconstruction_error
+from keyshape.keyshapes import MAX_KEYS, METHODS, KChoice, choose_n_keys, find_keyshapes
+from keyshape.metrics import face_scale, reconstruction_error
 
 
 def _aligned(**kwargs):
@@ -64,14 +66,16 @@ def test_spread_finds_extremes_along_the_components():
     assert sorted(keys.frames.tolist()) == sorted(perf.extreme_frames.tolist())
 
 
+@pytest.mark.parametrize("upper", [None, 1.0])
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("n_keys", [4, 10])
-def test_spa_error_is_no_worse_than_the_papers_methods(seed, n_keys):
+def test_spa_error_is_no_worse_than_the_papers_methods(seed, n_keys, upper):
     perf, aligned, neutral = _aligned(n_frames=200, n_keys=12, noise=0.5, random_state=seed)
     errors = {}
     for method in METHODS:
-        keys = find_keyshapes(aligned, regions=perf.regions, n_keys=n_keys, method=method, neutral_frame=neutral)
-        errors[method] = reconstruction_error(aligned, keys)
+        keys = find_keyshapes(aligned, regions=perf.regions, n_keys=n_keys, method=method, neutral_frame=neutral,
+                              upper=upper)
+        errors[method] = reconstruction_error(aligned, keys, upper=upper)
     for region in perf.regions:
         assert errors["spa"][region] <= min(errors["spread"][region], errors["hull"][region]) + 1e-9
 
@@ -108,51 +112,145 @@ def test_validation_messages(noisy):
         find_keyshapes(aligned, regions=perf.regions, n_keys={"upper": 2}, neutral_frame=neutral)
     with pytest.raises(InputError, match="only 191 valid frames"):
         find_keyshapes(aligned, regions=perf.regions, n_keys=500, neutral_frame=neutral)
+    with pytest.raises(InputError, match="upper must be None or a number > 0; got 0"):
+        find_keyshapes(aligned, regions=perf.regions, neutral_frame=neutral, upper=0)
+    with pytest.raises(InputError, match="n_keys must be an int, a dict of region -> int, or 'auto'; got 'all'"):
+        find_keyshapes(aligned, regions=perf.regions, n_keys="all", neutral_frame=neutral)
+    with pytest.raises(InputError, match="max_error must be a number > 0"):
+        choose_n_keys(aligned, regions=perf.regions, neutral_frame=neutral, max_error=0)
+    with pytest.raises(InputError, match="max_keys must be an int >= 1; got 0"):
+        find_keyshapes(aligned, regions=perf.regions, n_keys="auto", neutral_frame=neutral, max_keys=0)
 
 
-def test_reconstruction_error_is_zero_for_the_true_rig_and_weights():
-    perf = make_performance(n_frames=60, n_keys=4, noise=0.0, n_missing=3)
-    truth = KeyShapes(
-        neutral=perf.neutral, deltas=perf.key_deltas, names=("a", "b", "c", "d"),
-        frames=perf.extreme_frames, key_regions=perf.key_regions, regions=perf.regions,
-    )
-    aligned = perf.track.with_points(np.where(perf.track.valid[:, None, None], perf.canonical, np.nan))
-    for weights in (None, perf.true_weights):
-        errors = reconstruction_error(aligned, truth, weights=weights)
-        assert set(errors) == {"upper", "lower"} and max(errors.values()) < 1e-9
-    shifted = reconstruction_error(aligned, truth, weights=perf.true_weights + 0.1)
-    assert min(shifted.values()) > 0.1
+# --------------------------------------------------------------------------- strong keys under a bound
 
 
-def test_nonnegative_fit_matches_scipy_nnls():
-    from scipy.optimize import nnls
+def _tiny_key_data():
+    """Rows: 150 faint moves along e3 (0.02..0.2), 20 strong frames near e1 and 20 near e2, and
+    a planted faint frame 0.2·e3 (the last row). The faint frame explains every faint move
+    exactly at a weight <= 1, so the reconstruction error alone makes it the third key."""
+    rng = np.random.default_rng(0)
+    e1, e2, e3 = np.eye(6)[:3]
+    faint = rng.uniform(0.02, 0.2, (150, 1)) * e3
+    strong = np.vstack([rng.uniform(0.7, 1.0, (20, 1)) * e1, rng.uniform(0.7, 1.0, (20, 1)) * e2])
+    X = np.vstack([faint, strong, 0.2 * e3])
+    return X + rng.normal(0.0, 1e-3, X.shape)
 
-    from keyshape.metrics import nonnegative_fit
 
-    rng = np.random.default_rng(5)
-    bases, targets = rng.normal(size=(6, 40)), rng.normal(size=(12, 40))
-    fitted = nonnegative_fit(targets, bases)
-    expected = np.stack([nnls(bases.T, t)[0] for t in targets])
-    np.testing.assert_allclose(fitted, expected, atol=1e-8)
-    assert (fitted >= 0).all()
+def test_without_the_strength_floor_a_bounded_fit_would_pick_a_faint_frame():
+    X = _tiny_key_data()
+    strength = np.linalg.norm(X, axis=1)
+    faint = strength < _select.MIN_STRENGTH * np.quantile(strength, 0.95)
+    assert faint[_select.spa(X, 3, upper=1.0, min_strength=0.0)].any()  # the error alone prefers it
 
 
-@pytest.mark.slow
-def test_spa_beats_the_papers_methods_on_real_footage(real_track):
-    """Issue 3: on the real clip, spa has the lowest error at every K >= 4."""
-    from keyshape.align import choose_neutral
-    from keyshape.schemes import resolve_regions, stable_points
+@pytest.mark.parametrize("upper", [1.0, None])
+def test_spa_never_picks_a_faint_frame(upper):
+    X = _tiny_key_data()
+    strength = np.linalg.norm(X, axis=1)
+    floor = _select.MIN_STRENGTH * np.quantile(strength, 0.95)
+    for n_keys in (1, 2, 3, 4):
+        rows = _select.spa(X, n_keys, upper=upper)
+        assert (strength[rows] >= floor).all(), (n_keys, rows)
 
-    regions = resolve_regions("upper-lower", real_track.n_landmarks)
-    stable = stable_points(real_track.n_landmarks)
-    neutral = choose_neutral(real_track, stable=stable, regions=regions)
-    aligned, _ = align(real_track, reference=neutral, stable=stable)
-    for n_keys in (4, 8, 16, 30):
-        errors = {
-            method: reconstruction_error(
-                aligned, find_keyshapes(aligned, regions=regions, n_keys=n_keys, method=method, neutral_frame=neutral)
-            )
-            for method in METHODS
-        }
-        for region in regions:
-            assert errors["spa"][region] < min(errors["spread"][region], errors["hull"][region]), (n_keys, errors)
+
+def _faint_key_performance():
+    """Key 0 (upper) only ever moves faintly (weight <= 0.08; frame 230 is key 0 alone at 0.08),
+    key 2 (upper) strongly: the error alone would make frame 230 an upper key."""
+    perf = make_performance(n_frames=240, n_keys=4, noise=0.0, random_state=2)
+    rng = np.random.default_rng(2)
+    weights = np.zeros((240, 4))
+    weights[1:100, 0] = rng.uniform(0.01, 0.08, 99)
+    weights[100:200, 2] = rng.uniform(0.3, 1.0, 100)
+    weights[200:240, [1, 3]] = rng.uniform(0.0, 1.0, (40, 2))
+    weights[230] = [0.08, 0.0, 0.0, 0.0]
+    points = perf.neutral + np.einsum("fk,kpd->fpd", weights, perf.key_deltas)
+    return perf, Track(points + rng.normal(0.0, 0.01, points.shape), 30.0)
+
+
+@pytest.mark.parametrize("upper", [1.0, None])
+def test_keys_are_strong_frames_not_the_planted_faint_one(upper, monkeypatch):
+    perf, aligned = _faint_key_performance()
+    keys = find_keyshapes(aligned, regions=perf.regions, n_keys=2, neutral_frame=0, upper=upper)
+    assert 230 not in keys.frames
+    for region, lm in perf.regions.items():
+        strength = np.linalg.norm((aligned.points[1:, lm] - aligned.points[0, lm]).reshape(239, -1), axis=1)
+        floor = _select.MIN_STRENGTH * np.quantile(strength, 0.95)
+        assert (strength[keys.frames[keys.keys_of(region)] - 1] >= floor).all(), region
+    # the same selection without the strength floor takes the faint frame: the floor is what avoids it
+    monkeypatch.setattr(_select, "MIN_STRENGTH", 0.0)
+    assert 230 in find_keyshapes(aligned, regions=perf.regions, n_keys=2, neutral_frame=0, upper=upper).frames
+
+
+@pytest.mark.parametrize("upper", [None, 1.0])
+def test_keys_are_strong_on_a_noisy_performance(noisy, upper):
+    perf, aligned, neutral = noisy
+    keys = find_keyshapes(aligned, regions=perf.regions, n_keys=8, neutral_frame=neutral, upper=upper)
+    valid = np.flatnonzero(aligned.valid)
+    valid = valid[valid != neutral]
+    for region, lm in perf.regions.items():
+        strength = np.linalg.norm(aligned.points[:, lm] - aligned.points[neutral, lm], axis=(1, 2))
+        floor = _select.MIN_STRENGTH * np.quantile(strength[valid], 0.95)
+        assert (strength[keys.frames[keys.keys_of(region)]] >= floor).all()
+
+
+def test_bounded_weights_reach_the_keys_at_most_once():
+    """With upper=1 every frame's fit stays within the bound and spa's error is that of the bound."""
+    perf, aligned, neutral = _aligned(n_frames=200, n_keys=8, noise=0.3, random_state=4)
+    keys = find_keyshapes(aligned, regions=perf.regions, n_keys=4, neutral_frame=neutral, upper=1.0)
+    bounded = reconstruction_error(aligned, keys, upper=1.0)
+    free = reconstruction_error(aligned, keys)
+    assert all(free[r] <= bounded[r] + 1e-12 for r in perf.regions)
+
+
+# --------------------------------------------------------------------------- automatic K
+
+
+@pytest.mark.parametrize("upper", [1.0, None])
+@pytest.mark.parametrize("n_planted", [4, 6, 10])
+def test_auto_k_finds_the_planted_number_of_keys(n_planted, upper):
+    perf = make_performance(n_frames=240, n_keys=n_planted, noise=0.0, random_state=n_planted)
+    aligned = perf.track.with_points(perf.canonical)
+    choices = choose_n_keys(aligned, regions=perf.regions, neutral_frame=perf.neutral_frame,
+                            max_error=0.05, upper=upper)
+    planted = {r: perf.key_regions.count(r) for r in perf.regions}
+    assert {r: c.k for r, c in choices.items()} == planted
+    assert all(isinstance(c, KChoice) and c.error < 0.05 for c in choices.values())
+    # one key fewer does not reach the target
+    fewer = find_keyshapes(aligned, regions=perf.regions, n_keys={r: k - 1 for r, k in planted.items()},
+                           neutral_frame=perf.neutral_frame, upper=upper)
+    scale, _ = face_scale(perf.canonical[perf.neutral_frame])
+    errors = reconstruction_error(aligned, fewer, upper=upper)
+    # reconstruction_error averages over the same valid frames: convert to % of the face scale
+    assert all(100 * e / scale >= 0.05 for e in errors.values())
+
+
+def test_auto_keys_are_the_keys_of_that_count():
+    perf, aligned, neutral = _aligned(n_frames=200, n_keys=8, noise=0.3, random_state=5)
+    choices = choose_n_keys(aligned, regions=perf.regions, neutral_frame=neutral, max_error=1.0)
+    auto = find_keyshapes(aligned, regions=perf.regions, n_keys="auto", max_error=1.0, neutral_frame=neutral)
+    fixed = find_keyshapes(aligned, regions=perf.regions, n_keys={r: c.k for r, c in choices.items()},
+                           neutral_frame=neutral)
+    np.testing.assert_array_equal(auto.frames, fixed.frames)
+    assert auto.names == fixed.names
+    scale, _ = face_scale(aligned.points[neutral])
+    reached = reconstruction_error(aligned, auto, upper=1.0)
+    for region, choice in choices.items():
+        assert choice.error == pytest.approx(100 * reached[region] / scale, rel=1e-9)
+        assert choice.error < 1.0
+
+
+def test_auto_k_stops_at_the_cap_when_the_target_is_out_of_reach(noisy):
+    perf, aligned, neutral = noisy
+    choices = choose_n_keys(aligned, regions=perf.regions, neutral_frame=neutral, max_error=1e-6, max_keys=5)
+    assert all(c.k == 5 and c.error > 1e-6 for c in choices.values())
+    assert MAX_KEYS == 24
+
+
+@pytest.mark.parametrize("method", ["spread", "hull"])
+def test_auto_k_works_for_the_papers_methods(method):
+    perf = make_performance(n_frames=200, n_keys=4, noise=0.0, random_state=0)
+    aligned = perf.track.with_points(perf.canonical)
+    choices = choose_n_keys(aligned, regions=perf.regions, neutral_frame=perf.neutral_frame, method=method,
+                            max_error=0.05)
+    assert all(1 <= c.k <= MAX_KEYS and (c.error < 0.05 or c.k == MAX_KEYS) for c in choices.values())

@@ -173,7 +173,7 @@ def steps(X: np.ndarray, method: str, *, upper: float | None = None,
 
 
 def spa(X: np.ndarray, n_keys: int, *, upper: float | None = None,
-        objective: Objective | None = None, min_strength: float = MIN_STRENGTH) -> np.ndarray:
+        objective: Objective | None = None, min_strength: float | None = None) -> np.ndarray:
     """Successive projection grown one key at a time, each set refined by exchanges.
 
     The ``n_keys``-th set of :func:`spa_steps`.
@@ -198,7 +198,7 @@ def spa(X: np.ndarray, n_keys: int, *, upper: float | None = None,
 
 
 def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective | None = None,
-              min_strength: float = MIN_STRENGTH) -> Iterator[np.ndarray]:
+              min_strength: float | None = None) -> Iterator[np.ndarray]:
     """Key sets for ``K = 1, 2, …, n_frames``, each grown from the one before.
 
     Keys are *strong* rows: ``|x| ≥ min_strength · q95``, with ``q95`` the 95th percentile
@@ -222,8 +222,8 @@ def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective
     X : (n_frames, n_features) float
     upper : float or None, keyword-only
     objective : Objective, optional, keyword-only
-    min_strength : float, keyword-only
-        0 lets every row be a key.
+    min_strength : float, optional, keyword-only
+        Default ``MIN_STRENGTH`` (0.25); 0 lets every row be a key.
 
     Yields
     ------
@@ -234,7 +234,8 @@ def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective
         return
     axes = principal_axes(obj.X)  # as in steps(), so the seeds' fits are shared
     strength = np.sqrt(np.diag(obj.gram))
-    allowed = strength >= min_strength * np.quantile(strength, 0.95)
+    floor = (MIN_STRENGTH if min_strength is None else min_strength) * np.quantile(strength, 0.95)
+    allowed = strength >= floor
     keys = [_best_single(obj.gram, obj.bound, allowed)]
     weights, cost = obj.fit(keys)
     while True:

@@ -36,10 +36,16 @@ import numpy as np
 from . import _select
 from .containers import Track
 from .exceptions import InputError
-from .keyshapes import _candidates, _check_neutral, _check_regions, _check_upper, _region_data
+from .keyshapes import (
+    _candidates,
+    _check_neutral,
+    _check_regions,
+    _check_upper,
+    _region_data,
+)
 from .metrics import face_scale
 
-__all__ = ["error_vs_k", "KCurve", "METHODS"]
+__all__ = ["METHODS", "KCurve", "error_vs_k"]
 
 METHODS: tuple[str, ...] = ("pca", "spread", "hull", "spa")
 

@@ -53,7 +53,7 @@ from .containers import KeyShapes, Track
 from .exceptions import InputError
 from .metrics import face_scale
 
-__all__ = ["find_keyshapes", "choose_n_keys", "KChoice", "METHODS", "MAX_ERROR", "MAX_KEYS"]
+__all__ = ["MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "choose_n_keys", "find_keyshapes"]
 
 Method = Literal["spa", "spread", "hull"]
 METHODS: tuple[str, ...] = ("spa", "spread", "hull")

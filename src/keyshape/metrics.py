@@ -17,7 +17,7 @@ from .decompose import solve_nnls
 from .exceptions import InputError
 from .schemes import eye_corners
 
-__all__ = ["reconstruction_error", "nonnegative_fit", "face_scale"]
+__all__ = ["face_scale", "nonnegative_fit", "reconstruction_error"]
 
 
 def reconstruction_error(
