@@ -400,8 +400,9 @@ def test_head_node_by_name_or_a_clear_error(rig, weights, tmp_path):
     document.scenes[0].nodes = [2]
     document.save_binary(str(tmp_path / "two.glb"))
     poses = random_poses(weights.n_frames)
-    with pytest.raises(RigError, match="no head node found"):
-        animate_gltf(source, weights, tmp_path / "anim.glb", poses=poses)
+    with pytest.warns(UserWarning, match="no head node found .*the head rotation is not written"):
+        still = animate_gltf(source, weights, tmp_path / "still.glb", poses=poses)
+    assert read_glb_animation(still).rotations is None
     out = animate_gltf(source, weights, tmp_path / "anim.glb", poses=poses, head="Group")
     _clean(out)
     with pytest.raises(RigError, match="no node named 'Neck'"):
@@ -479,8 +480,10 @@ def test_eye_nodes_turn_with_the_gaze(rig, weights, tmp_path):
     with pytest.raises(InputError, match=r"eyes must have shape \(40, 2, 3, 3\)"):
         animate_gltf(source, weights, tmp_path / "x.glb", eyes=look[:, :1])
     plain = write_glb(tmp_path / "plain.glb", rig, Weights(np.zeros((0, 3)), rig.names, 30))
-    with pytest.raises(RigError, match="no eye nodes found"):
-        animate_gltf(plain, weights, tmp_path / "x.glb", eyes=look)
+    no_eyes = pygltflib.GLTF2().load(str(animate_gltf(plain, weights, tmp_path / "plain_anim.glb", eyes=look)))
+    assert [c.target.path for c in no_eyes.animations[0].channels] == ["weights"]  # no eye nodes: none turned
+    with pytest.raises(RigError, match=r"no eye nodes named \['L', 'R'\]"):
+        animate_gltf(plain, weights, tmp_path / "x.glb", eyes=look, eye_nodes=("L", "R"))
     assert not (tmp_path / "x.glb").exists()
 
 

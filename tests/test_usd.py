@@ -223,6 +223,12 @@ def test_animate_a_z_up_stage_turns_its_head_joint(tmp_path):
 
 def test_animate_usd_needs_a_skeleton_and_known_names(rig, tmp_path):
     source = _z_up_character(tmp_path / "hero.usda")
+    stage = Usd.Stage.Open(str(source))
+    UsdSkel.Skeleton(stage.GetPrimAtPath("/Hero/Rig")).GetJointsAttr().Set(["Root", "Root/Neck", "Root/Neck/Skull"])
+    stage.Save()
+    with pytest.warns(UserWarning, match="no joint named like 'head'"):
+        out = animate_usd(source, Weights(np.zeros((2, 1)), ("smile",), 24), tmp_path / "still.usda", poses=poses(2))
+    assert read_usd_animation(out).rotations is None
     with pytest.raises(RigError, match=r"does not have: \['frown'\]"):
         animate_usd(source, Weights(np.zeros((2, 1)), ("frown",), 24), tmp_path / "x.usda")
     stage = Usd.Stage.Open(str(source))

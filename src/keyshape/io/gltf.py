@@ -26,6 +26,7 @@ The Khronos Group, *glTF 2.0 Specification*, sections 3.7.2.2 (morph targets), 3
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -259,14 +260,16 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     poses : Poses, optional
         Head poses (image convention, as :func:`write_glb`), written as the ``rotation`` of
         the head node: ``Pᵀ D P R`` for a world-frame head rotation ``D``, the head's parent
-        rest rotation ``P`` and its own rest rotation ``R``, so it turns about its pivot.
+        rest rotation ``P`` and its own rest rotation ``R``, so it turns about its pivot. Where no
+        head node is found (and none is named), it is not written, with a warning.
     head : str, optional, keyword-only
         Name of the node to turn. Default: found (see ``_gltf_edit.find_head``).
     eyes : (n_frames, 2, 3, 3) float, optional, keyword-only
         Eye rotations relative to the head, image convention (as ``poses.rotations``), the
         character's left eye first; NaN frames hold the previous valid rotation. Written as the
         ``rotation`` of the eye nodes (below the head, named like ``Eye_L``/``RightEye``; see
-        ``_gltf_edit.find_eyes``), composed with their rest rotation as the head's.
+        ``_gltf_edit.find_eyes``), composed with their rest rotation as the head's. A character
+        without eye nodes gets none (its eyes belong to the face meshes).
     eye_nodes : (str, str), optional, keyword-only
         Names of the (left, right) eye nodes, when they cannot be found by name.
 
@@ -277,9 +280,8 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     Raises
     ------
     RigError
-        If the file has no named morph targets, ``weights`` names targets it lacks, ``poses`` is
-        given and no head node can be found (name one with ``head``), or ``eyes`` is given and no
-        eye nodes can be found (name them with ``eye_nodes``).
+        If the file has no named morph targets, ``weights`` names targets it lacks, or ``head``
+        or ``eye_nodes`` name nodes the file does not have.
     """
     path, source = Path(path), Path(source)
     _check_suffix(path)
@@ -337,8 +339,10 @@ def _turn_head(document, blob, animation, nodes, poses, head, source) -> None:
         return
     index = edit.find_head(document, nodes, name=head)
     if index is None:
-        raise RigError(f"{str(source)!r}: no head node found for the head rotation (no joint or "
-                       "node named like 'head' above the face meshes); name one, or leave out the poses")
+        warnings.warn(f"{str(source)!r}: no head node found (no joint or node named like 'head' above the "
+                      "face meshes): the head rotation is not written; name the node to turn", UserWarning,
+                      stacklevel=4)
+        return
     _add_node_rotation(document, blob, animation, index, head_rotations(poses))
 
 
@@ -347,9 +351,8 @@ def _turn_eyes(document, blob, animation, nodes, eyes, names, source) -> None:
         return
     head, eye_nodes = names
     found = edit.find_eyes(document, edit.find_head(document, nodes, name=head), names=eye_nodes)
-    if found is None:
-        raise RigError(f"{str(source)!r}: no eye nodes found (named like Eye_L / RightEye below the head); "
-                       "name them, or leave out the eye rotations")
+    if found is None:  # a character without eye nodes: its eyes are part of the face meshes
+        return
     eyes = np.asarray(eyes, dtype=float)
     for side, node in enumerate(found):
         rotations = _fill_invalid(eyes[:, side])

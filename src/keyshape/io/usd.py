@@ -22,6 +22,7 @@ Pixar, *UsdSkel* schema documentation: "Blend Shapes", "Skel Animation", "Skel B
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -231,8 +232,8 @@ def animate_usd(source, weights: Weights, path, *, poses: Poses | None = None) -
     Raises
     ------
     RigError
-        No blend-shape mesh, one without a skeleton, names the stage lacks, or poses without a
-        head joint.
+        No blend-shape mesh, one without a skeleton, or names the stage lacks. (Poses with no
+        joint named like ``head`` are not written, with a warning.)
     """
     from .gltf import _check_poses, head_rotations
 
@@ -319,7 +320,10 @@ def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, wor
         return
     head = _head_joint(joints)
     if head is None:
-        raise RigError(f"{source}: no joint named like 'head' in {skeleton.GetPath()} to carry the head rotation")
+        warnings.warn(f"{source}: no joint named like 'head' in {skeleton.GetPath()}: the head rotation is not "
+                      "written", UserWarning, stacklevel=5)
+        attribute.Set(rotations)
+        return
     local = _head_local(skeleton, joints, rest, head, world)
     quats = list(rotations)
     for frame, (x, y, z, w) in enumerate(local):
