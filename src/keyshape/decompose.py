@@ -190,7 +190,8 @@ def solve_weights(
     Weights
         ``values (n_frames, n_keys)`` in ``keys.names`` order, ``fps = track.fps``. With
         ``smoothness == 0`` frames without a face get NaN weights; with ``smoothness > 0``
-        they are bridged by the smoothness term.
+        gaps between faces are bridged by the smoothness term, and only frames before the
+        first or after the last face stay NaN (nothing is extrapolated).
 
     Examples
     --------
