@@ -21,8 +21,8 @@ if ((${#missing[@]})); then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
 fi
 
-echo "setup: pip install -e .[test,bench]"
-python -m pip install -q --disable-pip-version-check -e ".[test,bench]"
+echo "setup: pip install -e .[test,bench,usd,ray]"
+python -m pip install -q --disable-pip-version-check -e ".[test,bench,usd,ray]"
 command -v pyenv >/dev/null && pyenv rehash || true
 
 echo "setup: npm ci (Khronos glTF validator)"
