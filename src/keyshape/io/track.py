@@ -46,12 +46,33 @@ def write_track_arrays(path: str | Path, *, points: np.ndarray, fps: float,
 
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """``np.savez_compressed`` that streams each array (numpy writes in 16 MiB chunks)."""
+    """``np.savez_compressed`` that streams each array, so memory stays flat.
+
+    A memory map is copied from its file in 8 MiB reads (mapping its pages in would grow the
+    resident set with the array); other arrays go through numpy's chunked writer.
+    """
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
         for name, array in arrays.items():
             with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
-                np.lib.format.write_array(fh, np.asanyarray(array), allow_pickle=False)
+                if isinstance(array, np.memmap) and array.filename and array.flags.c_contiguous:
+                    _copy_memmap(fh, array)
+                else:
+                    np.lib.format.write_array(fh, np.asanyarray(array), allow_pickle=False)
 
+
+def _copy_memmap(fh, array: np.memmap, chunk: int = 1 << 23) -> None:
+    header = {"descr": np.lib.format.dtype_to_descr(array.dtype), "fortran_order": False,
+              "shape": array.shape}
+    np.lib.format.write_array_header_1_0(fh, header)
+    with open(array.filename, "rb") as src:
+        src.seek(array.offset)
+        remaining = array.nbytes
+        while remaining:
+            data = src.read(min(remaining, chunk))
+            if not data:
+                raise OSError(f"{array.filename}: ended {remaining} bytes early")
+            fh.write(data)
+            remaining -= len(data)
 
 def load_track(path: str | Path, *, fps: float | None = None) -> Track:
     """Read a track: a keyshape ``.npz`` (any file with ``points`` and ``fps``) or a landmark CSV.
