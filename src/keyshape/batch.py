@@ -245,10 +245,9 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions =
     report = on_row or (lambda row: None)
     for row in rows.values():
         report(row)
-    runner = runner if runner is not None else make_runner()
-    with runner:
-        if pending:
-            rows.update(_process(pending, outdir, options, shared_keys, runner, report))
+    if pending:  # a finished batch does not start Ray
+        with runner if runner is not None else make_runner() as active:
+            rows.update(_process(pending, outdir, options, shared_keys, active, report))
     ordered = [rows[v] for v in videos]
     write_summary(ordered, outdir / "summary.csv")
     return ordered
