@@ -1,0 +1,539 @@
+"""Correspondence: which point of a character's mesh each tracked landmark stands for.
+
+Expression transfer and semantic mapping (:mod:`keyshape.transfer`, :mod:`keyshape.propose`)
+compare the actor's landmark motion with the character's surface, so they need, for some
+landmarks, a point on the character. A :class:`Correspondence` stores each such point as
+barycentric weights over one triangle (a plain vertex is a triangle of one vertex repeated),
+so it follows the mesh when the mesh deforms.
+
+Three ways to get one:
+
+* :meth:`Correspondence.from_vertex_ids`: landmark index -> vertex id (e.g. ICT-FaceKit's 68
+  landmark vertices);
+* :func:`read_correspondence`: a JSON file written by a person (vertex ids, barycentric
+  points, or 3D points that are snapped to the surface);
+* :func:`find_correspondence`: for human-like heads, render the neutral from the front and
+  run MediaPipe on the picture; each landmark becomes the visible surface point under it.
+
+The JSON file (``CORRESPONDENCE.json``)::
+
+    {"format": "keyshape-correspondence", "version": 1, "n_landmarks": 478,
+     "landmarks": {"33": 1204,                                      # a vertex id
+                   "263": [0.031, 0.042, 0.087],                     # a 3D point (snapped)
+                   "61": {"vertices": [5, 6, 7], "weights": [0.2, 0.3, 0.5]}}}
+
+A bare object ``{"33": 1204, ...}`` or a list of vertex ids (landmark ``i`` -> ``list[i]``)
+is read too. Points are in the rig's units as loaded (metres for glTF).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import sparse
+
+from .exceptions import InputError, RigError
+
+__all__ = [
+    "Correspondence",
+    "find_correspondence",
+    "mesh_components",
+    "read_correspondence",
+    "snap_to_surface",
+]
+
+FORMAT = "keyshape-correspondence"
+
+
+@dataclass(frozen=True, eq=False)
+class Correspondence:
+    """Landmarks ↔ points on a target mesh, as barycentric combinations of its vertices.
+
+    Attributes
+    ----------
+    landmarks : (n_corr,) int
+        Landmark indices (unique, in ``0..n_landmarks-1``).
+    vertices : (n_corr, 3) int
+        The target vertices each point is made of (a triangle, or one vertex three times).
+    weights : (n_corr, 3) float
+        Barycentric weights, ≥ 0, each row summing to 1.
+    n_landmarks : int
+        Size of the landmark scheme (478 for MediaPipe, 68 for iBUG).
+
+    Examples
+    --------
+    >>> corr = Correspondence.from_vertex_ids({0: 2, 4: 0}, n_landmarks=5)
+    >>> corr.points(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]))[:, 0].tolist()
+    [2.0, 0.0]
+    """
+
+    landmarks: np.ndarray
+    vertices: np.ndarray
+    weights: np.ndarray
+    n_landmarks: int
+
+    def __post_init__(self):
+        landmarks = np.asarray(self.landmarks, dtype=np.int64).reshape(-1)
+        vertices = np.asarray(self.vertices, dtype=np.int64).reshape(-1, 3)
+        weights = np.asarray(self.weights, dtype=float).reshape(-1, 3)
+        n = int(self.n_landmarks)
+        if not len(landmarks) == len(vertices) == len(weights):
+            raise InputError(f"a correspondence needs as many landmarks, vertex triples and weight triples; "
+                             f"got {len(landmarks)}, {len(vertices)} and {len(weights)}")
+        if len(landmarks) and (landmarks.min() < 0 or landmarks.max() >= n):
+            raise InputError(f"landmark indices must be in 0..{n - 1}; got {landmarks.min()}..{landmarks.max()}")
+        if len(np.unique(landmarks)) != len(landmarks):
+            raise InputError("each landmark may correspond to one point only; repeated landmarks")
+        if (vertices < 0).any() or (weights < -1e-9).any() or not np.allclose(weights.sum(axis=1), 1):
+            raise InputError("correspondence vertices must be >= 0 and weights >= 0 summing to 1 per row")
+        for name, value in (("landmarks", landmarks), ("vertices", vertices), ("weights", weights)):
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "n_landmarks", n)
+
+    n_corr = property(lambda self: len(self.landmarks))
+
+    @classmethod
+    def from_vertex_ids(cls, ids, *, n_landmarks: int | None = None) -> Correspondence:
+        """Landmark ``i`` ↔ vertex ``ids[i]``.
+
+        Parameters
+        ----------
+        ids : dict int -> int, or sequence of int (landmark ``i`` -> ``ids[i]``)
+        n_landmarks : int, optional, keyword-only
+            Default: the largest landmark index + 1.
+        """
+        pairs = dict(ids) if isinstance(ids, dict) else dict(enumerate(ids))
+        landmarks = np.array([int(k) for k in pairs], dtype=np.int64)
+        vertices = np.array([int(v) for v in pairs.values()], dtype=np.int64)
+        n = int(n_landmarks) if n_landmarks is not None else int(landmarks.max(initial=-1)) + 1
+        weights = np.zeros((len(vertices), 3))
+        weights[:, 0] = 1.0
+        return cls(landmarks, np.repeat(vertices[:, None], 3, axis=1), weights, n)
+
+    def points(self, vertices: np.ndarray) -> np.ndarray:
+        """Positions ``(..., n_corr, 3)`` of the points on a mesh ``(..., n_vertices, 3)``.
+
+        Works on deltas too (``rig.deltas`` gives each target's motion at the points).
+        """
+        vertices = np.asarray(vertices, dtype=float)
+        # c: point, j: triangle corner, d: dimension
+        return np.einsum("...cjd,cj->...cd", vertices[..., self.vertices, :], self.weights)
+
+    def matrix(self, n_vertices: int) -> sparse.csr_matrix:
+        """``B (n_corr, n_vertices)``, sparse: ``points(V) == B @ V``."""
+        rows = np.repeat(np.arange(self.n_corr), 3)
+        return sparse.csr_matrix((self.weights.ravel(), (rows, self.vertices.ravel())),
+                                 shape=(self.n_corr, n_vertices))
+
+    def check(self, n_vertices: int, n_landmarks: int | None = None) -> Correspondence:
+        """Raise :class:`RigError` unless the vertices exist (and the scheme size matches); return self."""
+        if self.n_corr and self.vertices.max() >= n_vertices:
+            raise RigError(f"the correspondence uses vertex {int(self.vertices.max())} but the mesh has "
+                           f"{n_vertices} vertices: was it made for another mesh?")
+        if n_landmarks is not None and n_landmarks != self.n_landmarks:
+            raise RigError(f"the correspondence is for {self.n_landmarks} landmarks but the key shapes have "
+                           f"{n_landmarks}: make one for this landmark scheme")
+        return self
+
+    def to_dict(self) -> dict:
+        """The JSON form (see the module docstring); vertex ids where a point is a vertex."""
+        entries = {}
+        for landmark, tri, w in zip(self.landmarks, self.vertices, self.weights):
+            if np.isclose(w.max(), 1.0):
+                entries[str(int(landmark))] = int(tri[int(np.argmax(w))])
+            else:
+                entries[str(int(landmark))] = {"vertices": tri.tolist(), "weights": np.round(w, 6).tolist()}
+        return {"format": FORMAT, "version": 1, "n_landmarks": self.n_landmarks, "landmarks": entries}
+
+    def save(self, path) -> Path:
+        """Write the JSON file atomically."""
+        from .io.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(self.to_dict(), indent=1) + "\n", encoding="utf-8")
+        return Path(path)
+
+    def __repr__(self) -> str:
+        return f"Correspondence(n_corr={self.n_corr}, n_landmarks={self.n_landmarks})"
+
+
+# --------------------------------------------------------------------------- reading a file
+
+
+def read_correspondence(path, vertices: np.ndarray, faces: np.ndarray, *,
+                        n_landmarks: int | None = None) -> Correspondence:
+    """Read a correspondence JSON file for the mesh ``(vertices, faces)``.
+
+    Parameters
+    ----------
+    path : str or Path
+    vertices : (n_vertices, 3) float
+        The target's neutral (3D points in the file are snapped onto it).
+    faces : (n_faces, 3) int
+    n_landmarks : int, optional, keyword-only
+        The landmark scheme's size; default: the file's ``n_landmarks``, else the largest index + 1.
+
+    Returns
+    -------
+    Correspondence
+
+    Raises
+    ------
+    InputError
+        Unreadable file or a bad entry (the message names the file and the landmark).
+    RigError
+        A vertex id the mesh does not have.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: correspondence file not found") from None
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise InputError(f"{path}: not a readable JSON file ({error.__class__.__name__}: {error})") from None
+    try:
+        return correspondence_from_dict(data, vertices, faces, n_landmarks=n_landmarks)
+    except (InputError, RigError) as error:
+        raise type(error)(f"{path}: {error}") from None
+
+
+def correspondence_from_dict(data, vertices: np.ndarray, faces: np.ndarray, *,
+                             n_landmarks: int | None = None) -> Correspondence:
+    """The :func:`read_correspondence` parser, on already-decoded JSON."""
+    vertices = np.asarray(vertices, dtype=float)
+    entries, declared = _entries(data)
+    n = n_landmarks if n_landmarks is not None else declared
+    landmarks, triangles, weights, points, at = [], [], [], [], []
+    for key, value in entries.items():
+        landmark = _landmark_index(key)
+        tri, w = _parse_entry(landmark, value, len(vertices))
+        landmarks.append(landmark)
+        triangles.append(tri)
+        weights.append(w)
+        if tri is None:
+            points.append(w)
+            at.append(len(landmarks) - 1)
+    if points:
+        snapped_tri, snapped_w = snap_to_surface(np.array(points), vertices, faces)
+        for i, tri, w in zip(at, snapped_tri, snapped_w):
+            triangles[i], weights[i] = tri, w
+    if not landmarks:
+        raise InputError("the correspondence names no landmarks")
+    n = int(n) if n is not None else max(landmarks) + 1
+    return Correspondence(landmarks, np.array(triangles), np.array(weights), n).check(len(vertices))
+
+
+def _entries(data) -> tuple[dict, int | None]:
+    if isinstance(data, list):
+        return dict(enumerate(data)), None
+    if not isinstance(data, dict):
+        raise InputError(f"expected a JSON object or list; got {type(data).__name__}")
+    if "landmarks" in data:
+        entries = data["landmarks"]
+        entries = dict(enumerate(entries)) if isinstance(entries, list) else entries
+        if not isinstance(entries, dict):
+            raise InputError('"landmarks" must be an object {landmark: vertex id, point or barycentric}')
+        return entries, data.get("n_landmarks")
+    return data, None
+
+
+def _landmark_index(key) -> int:
+    try:
+        index = int(key)
+    except (TypeError, ValueError):
+        raise InputError(f"landmark keys must be integers (landmark indices); got {key!r}") from None
+    if index < 0:
+        raise InputError(f"landmark indices must be >= 0; got {index}")
+    return index
+
+
+def _parse_entry(landmark: int, value, n_vertices: int):
+    """``(triangle (3,) int, weights (3,))`` or ``(None, point (3,))`` for a point to snap."""
+    if isinstance(value, bool):
+        raise InputError(f"landmark {landmark}: expected a vertex id, [x, y, z] or "
+                         f"{{\"vertices\", \"weights\"}}; got {value!r}")
+    if isinstance(value, int):
+        if not 0 <= value < n_vertices:
+            raise RigError(f"landmark {landmark}: vertex {value} is not in the mesh (0..{n_vertices - 1})")
+        return np.array([value] * 3), np.array([1.0, 0.0, 0.0])
+    if isinstance(value, list) and len(value) == 3 and all(isinstance(v, (int, float)) for v in value):
+        point = np.array(value, dtype=float)
+        if not np.isfinite(point).all():
+            raise InputError(f"landmark {landmark}: point must be finite; got {value!r}")
+        return None, point
+    if isinstance(value, dict):
+        return _parse_barycentric(landmark, value, n_vertices)
+    raise InputError(f"landmark {landmark}: expected a vertex id, [x, y, z] or "
+                     f"{{\"vertices\": [a, b, c], \"weights\": [u, v, w]}}; got {value!r}")
+
+
+def _parse_barycentric(landmark: int, value: dict, n_vertices: int):
+    try:
+        tri = np.array(value["vertices"], dtype=np.int64).reshape(3)
+        w = np.array(value["weights"], dtype=float).reshape(3)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"landmark {landmark}: a barycentric point needs \"vertices\" (3 ids) and "
+                         f"\"weights\" (3 numbers); got {value!r}") from None
+    if (tri < 0).any() or (tri >= n_vertices).any():
+        raise RigError(f"landmark {landmark}: vertices {tri.tolist()} not all in the mesh (0..{n_vertices - 1})")
+    if (w < 0).any() or w.sum() <= 0:
+        raise InputError(f"landmark {landmark}: weights must be >= 0 and not all 0; got {w.tolist()}")
+    return tri, w / w.sum()
+
+
+# --------------------------------------------------------------------------- snapping to the surface
+
+
+def snap_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *,
+                    candidates: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Closest point on a triangle mesh to each of ``points``, as barycentric coordinates.
+
+    Candidate triangles are those around the ``candidates`` nearest vertices of each point;
+    the closest point on a triangle is the projection onto its plane when that falls inside,
+    else the closest point on its edges (Ericson 2005, §5.1.5).
+
+    Parameters
+    ----------
+    points : (n_points, 3) float
+    vertices : (n_vertices, 3) float
+    faces : (n_faces, 3) int
+    candidates : int, keyword-only
+
+    Returns
+    -------
+    triangles : (n_points, 3) int
+    weights : (n_points, 3) float, barycentric, rows sum to 1
+
+    References
+    ----------
+    .. [1] C. Ericson, *Real-Time Collision Detection*, Morgan Kaufmann 2005, section 5.1.5.
+
+    Examples
+    --------
+    >>> tri, w = snap_to_surface(np.array([[0.25, 0.25, 1.0]]), np.eye(3) - [0, 0, 1] * np.eye(3)[2],
+    ...                          np.array([[0, 1, 2]]))
+    >>> tri.tolist(), w.round(2).tolist()
+    ([[0, 1, 2]], [[0.5, 0.25, 0.25]])
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    vertices, faces = np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
+    k = min(candidates, len(vertices))
+    _, near = cKDTree(vertices).query(points, k=k)
+    near = np.asarray(near).reshape(len(points), k)
+    incident = _vertex_faces(faces, len(vertices))
+    triangles = np.zeros((len(points), 3), dtype=np.int64)
+    weights = np.zeros((len(points), 3))
+    for i, point in enumerate(points):
+        options = np.unique(incident[near[i]].indices)
+        if len(options) == 0:  # isolated vertices only: snap to the nearest vertex
+            triangles[i], weights[i] = near[i, 0], (1.0, 0.0, 0.0)
+            continue
+        bary, dist = _closest_on_triangles(point, *(vertices[faces[options, j]] for j in range(3)))
+        best = int(np.argmin(dist))
+        triangles[i], weights[i] = faces[options[best]], bary[best]
+    return triangles, weights
+
+
+def _vertex_faces(faces: np.ndarray, n_vertices: int) -> sparse.csr_matrix:
+    """Vertex -> incident faces, as a sparse ``(n_vertices, n_faces)`` incidence matrix."""
+    rows = faces.ravel()
+    cols = np.repeat(np.arange(len(faces)), 3)
+    return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, len(faces)))
+
+
+def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
+    """Barycentric coordinates ``(n, 3)`` and squared distance ``(n,)`` of the closest points to ``p``."""
+    ab, ac, ap = b - a, c - a, p - a
+    # plane projection: solve [ab·ab ab·ac; ab·ac ac·ac] [v w]ᵀ = [ab·ap ac·ap]ᵀ
+    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+    d20, d21 = (ap * ab).sum(1), (ap * ac).sum(1)
+    det = d00 * d11 - d01 * d01
+    safe = np.where(np.abs(det) > 1e-300, det, 1.0)
+    v, w = (d11 * d20 - d01 * d21) / safe, (d00 * d21 - d01 * d20) / safe
+    inside = (v >= 0) & (w >= 0) & (v + w <= 1) & (np.abs(det) > 1e-300)
+    options = [np.stack([1 - v - w, v, w], axis=1)]
+    for i, j in ((0, 1), (1, 2), (2, 0)):  # the three edges
+        options.append(_closest_on_edge(p, (a, b, c)[i], (a, b, c)[j], i, j))
+    corners = np.stack([a, b, c], axis=1)
+    dists = np.stack([((p - np.einsum("nj,njd->nd", o, corners)) ** 2).sum(1) for o in options], axis=1)
+    dists[~inside, 0] = np.inf
+    pick = np.argmin(dists, axis=1)
+    bary = np.stack(options, axis=1)[np.arange(len(a)), pick]
+    return bary, dists[np.arange(len(a)), pick]
+
+
+def _closest_on_edge(p, start, end, i: int, j: int) -> np.ndarray:
+    """Barycentric ``(n, 3)`` of the closest point to ``p`` on the segments ``start → end``."""
+    edge = end - start
+    length2 = (edge * edge).sum(1)
+    t = np.clip(((p - start) * edge).sum(1) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+    bary = np.zeros((len(start), 3))
+    bary[:, i], bary[:, j] = 1 - t, t
+    return bary
+
+
+# --------------------------------------------------------------------------- mesh components
+
+
+def mesh_components(vertices: np.ndarray, faces: np.ndarray, *, weld: float = 1e-6) -> np.ndarray:
+    """Connected component of every vertex ``(n_vertices,) int``, after welding coincident vertices.
+
+    glTF meshes split vertices along texture seams; welding (positions equal within ``weld``
+    times the mesh's size) keeps a seam from splitting a face in two. Components are numbered
+    by decreasing size.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    welded, n = weld_vertices(vertices, tolerance=weld)
+    edges = welded[np.asarray(faces, dtype=np.int64)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)]
+    graph = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    order = np.argsort(-np.bincount(label), kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[label][welded]
+
+
+def weld_vertices(vertices: np.ndarray, *, tolerance: float = 1e-6) -> tuple[np.ndarray, int]:
+    """Index of each vertex's welded representative ``(n_vertices,) int`` and the number of them.
+
+    Vertices closer than ``tolerance`` times the bounding-box diagonal (on a grid) share one index.
+    """
+    vertices = np.asarray(vertices, dtype=float)
+    size = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 1.0
+    step = max(size * tolerance, 1e-12)
+    _, index = np.unique(np.round(vertices / step).astype(np.int64), axis=0, return_inverse=True)
+    index = index.reshape(-1)
+    return index, int(index.max(initial=-1)) + 1
+
+
+# --------------------------------------------------------------------------- automatic
+
+
+def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 640,
+                        backend: str = "auto") -> Correspondence:
+    """MediaPipe's 478 landmarks on a human-like head, found on a front render of its neutral.
+
+    The mesh (glTF axes: +Y up, facing +Z) is rendered from the front with an orthographic
+    camera, MediaPipe's face landmarker runs on the picture, and the picture is rendered again
+    framed on the face it found (a second, sharper pass). Each landmark becomes the visible
+    surface point under its pixel (barycentric in the visible triangle); a landmark that falls
+    off the mesh or on a small part (an eyeball, a tooth) takes the nearest visible vertex of
+    the large parts.
+
+    Parameters
+    ----------
+    vertices : (n_vertices, 3) float
+    faces : (n_faces, 3) int
+    size : int, keyword-only
+        Side of the square renders, pixels.
+    backend : "auto", "gl" or "numpy", keyword-only
+        Renderer (see :func:`keyshape.render.make_renderer`).
+
+    Returns
+    -------
+    Correspondence
+        ``n_landmarks = 478``.
+
+    Raises
+    ------
+    RigError
+        If MediaPipe finds no face on the render (not a human-like head, or not facing +Z).
+    """
+    from .render import frame_points
+
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64)
+    camera = frame_points(vertices, margin=1.05)
+    picture = _render(vertices, faces, camera, size, backend)
+    found = _detect(picture)
+    if found is None:
+        raise RigError("MediaPipe found no face on a front render of the character (is it a human-like "
+                       "head facing +Z?): give the correspondence as a JSON file")
+    camera = _face_camera(vertices, camera, found, size)
+    closer = _detect(_render(vertices, faces, camera, size, backend))
+    landmarks = closer if closer is not None else found
+    camera = camera if closer is not None else frame_points(vertices, margin=1.05)
+    return _surface_points(landmarks[:, :2], vertices, faces, camera, size)
+
+
+def _render(vertices, faces, camera, size: int, backend: str) -> np.ndarray:
+    from .render import make_renderer
+
+    with make_renderer(faces, size, size, n_vertices=len(vertices), backend=backend) as renderer:
+        return renderer.render(vertices, camera)
+
+
+def _detect(picture: np.ndarray) -> np.ndarray | None:
+    """MediaPipe's landmarks ``(478, 3)`` in pixels on one picture, or None (a fresh landmarker each time)."""
+    from .capture.mediapipe import MediaPipeTracker
+
+    with MediaPipeTracker() as tracker:
+        faces = tracker.detect(picture, 0)
+    return faces[0].points if faces else None
+
+
+def _face_camera(vertices, camera, landmarks: np.ndarray, size: int):
+    """A front camera framed on the vertices under the detected face's box (enlarged by 40 %)."""
+    from .render import frame_points
+
+    screen, _ = camera.to_screen(vertices, size, size)
+    low, high = landmarks[:, :2].min(axis=0), landmarks[:, :2].max(axis=0)
+    centre, half = (low + high) / 2, (high - low).max() * 0.7
+    inside = (np.abs(screen[:, :2] - centre) <= half).all(axis=1)
+    if inside.sum() < 10:
+        return camera
+    box = vertices[inside]
+    depth = vertices[:, 2]
+    box = np.vstack([box, [[box[0, 0], box[0, 1], depth.min()], [box[0, 0], box[0, 1], depth.max()]]])
+    return frame_points(box, margin=1.0)
+
+
+def _surface_points(pixels: np.ndarray, vertices, faces, camera, size: int) -> Correspondence:
+    """Barycentric surface points under ``pixels (478, 2)`` (nearest large-part vertex off the mesh)."""
+    from .render.raster import rasterize
+
+    screen, in_front = camera.to_screen(vertices, size, size)
+    face_id = rasterize(screen, faces, size, size, in_front=in_front)
+    large = _large_parts(vertices, faces)
+    column = np.clip(np.floor(pixels[:, 0]).astype(int), 0, size - 1)
+    row = np.clip(np.floor(pixels[:, 1]).astype(int), 0, size - 1)
+    hit = face_id[row, column]
+    triangles = np.zeros((len(pixels), 3), dtype=np.int64)
+    weights = np.zeros((len(pixels), 3))
+    ok = (hit >= 0) & large[faces[np.maximum(hit, 0), 0]]
+    for i in np.flatnonzero(ok):
+        triangles[i] = faces[hit[i]]
+        weights[i] = _screen_barycentric(pixels[i], screen[faces[hit[i]], :2])
+    visible = np.zeros(len(vertices), dtype=bool)
+    visible[faces[np.unique(face_id[face_id >= 0])].ravel()] = True
+    pool = np.flatnonzero(visible & large)
+    for i in np.flatnonzero(~ok):
+        nearest = pool[np.argmin(((screen[pool, :2] - pixels[i]) ** 2).sum(axis=1))]
+        triangles[i], weights[i] = nearest, (1.0, 0.0, 0.0)
+    return Correspondence(np.arange(len(pixels)), triangles, weights, len(pixels))
+
+
+def _large_parts(vertices, faces) -> np.ndarray:
+    """(n_vertices,) bool: vertices of components with at least 10 % of the largest one's vertices."""
+    label = mesh_components(vertices, faces)
+    counts = np.bincount(label)
+    return counts[label] >= 0.1 * counts.max()
+
+
+def _screen_barycentric(pixel: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (3,) of a 2D point in a 2D triangle, clipped into it."""
+    a, b, c = corners
+    matrix = np.array([b - a, c - a]).T
+    try:
+        v, w = np.linalg.solve(matrix, pixel - a)
+    except np.linalg.LinAlgError:
+        return np.array([1.0, 0.0, 0.0])
+    bary = np.clip([1 - v - w, v, w], 0, None)
+    return bary / bary.sum() if bary.sum() > 0 else np.array([1.0, 0.0, 0.0])
