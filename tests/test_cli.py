@@ -177,3 +177,18 @@ def test_solve_options(demo_out, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["solve", str(track), str(keys), "-o", str(tmp_path / "x.csv"), "--max", "-1"])
     assert exc.value.code == 2
+
+
+def test_count_auto_reaches_the_target(demo_out, tmp_path, capsys):
+    keys_path = tmp_path / "auto.json"
+    assert main(["keys", str(demo_out / "track.npz"), "-o", str(keys_path), "--count", "auto",
+                 "--max-error", "1.5"]) == 0
+    line = [l for l in capsys.readouterr().out.splitlines() if l.startswith("fit:")][0]
+    import re
+
+    found = re.findall(r"(\w+): K = (\d+), RMS error ([\d.]+)", line)
+    assert {r for r, _, _ in found} == {"upper", "lower"}
+    keys = load_keys(keys_path)
+    for region, k, error in found:
+        assert float(error) < 1.5
+        assert len(keys.keys_of(region)) == int(k) and 1 <= int(k) <= 24

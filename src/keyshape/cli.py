@@ -13,6 +13,7 @@ from pathlib import Path
 
 from . import __version__
 from .commands import discover
+from .commands._argtypes import bound, non_negative, positive, whole
 from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from .exceptions import InputError, KeyshapeError
 
@@ -41,14 +42,8 @@ def _formatter(prog):
     return argparse.RawDescriptionHelpFormatter(prog, max_help_position=32)
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}") from None
-    if not 1 <= value <= 64:
-        raise argparse.ArgumentTypeError(f"must be between 1 and 64; got {value}")
-    return value
+def _count(text: str) -> int | str:
+    return "auto" if text == "auto" else whole(1, 64)(text)
 
 
 def _add_key_options(p: argparse.ArgumentParser) -> None:
@@ -57,7 +52,11 @@ def _add_key_options(p: argparse.ArgumentParser) -> None:
                         "(default); hull = convex hull of the leading principal components (paper); "
                         "spread = extreme projections on the principal components (paper)")
     p.add_argument("--count", type=_count, default=8, metavar="K",
-                   help="key shapes per region (default 8)")
+                   help="key shapes per region (default 8), or 'auto': the fewest per region whose "
+                        "RMS error is below --max-error (at most 24)")
+    p.add_argument("--max-error", type=positive, default=2.0, metavar="PCT",
+                   help="target of --count auto: RMS reconstruction error in %% of the "
+                        "inter-ocular distance (default 2)")
     p.add_argument("--regions", default="upper-lower", metavar="SCHEME",
                    help="upper-lower (brows+eyes / mouth+jaw, default), whole, eyes "
                         "(brows / left eye / right eye / mouth), or a REGIONS.json mapping region "
@@ -82,34 +81,12 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
                         "MediaPipe's video mode already smooths")
 
 
-def _upper(text: str) -> float | None:
-    if text.lower() in ("none", "inf", "off"):
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number or 'none'; got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0; got {value}")
-    return value
-
-
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number; got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0; got {value}")
-    return value
-
-
 def _add_solve_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--smooth", type=_non_negative, default=DEFAULT_SMOOTHNESS, metavar="LAMBDA",
+    p.add_argument("--smooth", type=non_negative, default=DEFAULT_SMOOTHNESS, metavar="LAMBDA",
                    help=f"temporal smoothness, solved over the whole take with no lag (default "
                         f"{DEFAULT_SMOOTHNESS}; 0 = the paper's per-frame NNLS). Short gaps without a "
                         f"face are bridged, longer ones (> 0.5 s) hold the neutral")
-    p.add_argument("--max", type=_upper, default=DEFAULT_UPPER, metavar="U",
+    p.add_argument("--max", type=bound, default=DEFAULT_UPPER, metavar="U",
                    help=f"upper bound of every weight (default {DEFAULT_UPPER:g}; 'none' lifts it)")
     p.add_argument("--convex", action="store_true",
                    help="also require the weights of each region to sum to at most 1")
@@ -245,13 +222,18 @@ def _one_euro(text: str | None) -> dict | None:
 def cmd_keys(args) -> None:
     from .io.keys_json import save_keys
     from .io.track import load_track
-    from .pipeline import discover_keys
+    from .pipeline import discover_keys, fit_errors
 
     tracks = [load_track(path) for path in args.tracks]
     keys = discover_keys(tracks, regions=args.regions, n_keys=args.count, method=args.method,
-                         neutral=args.neutral, take=[path.name for path in args.tracks])
+                         neutral=args.neutral, take=[path.name for path in args.tracks],
+                         max_error=args.max_error)
     save_keys(keys, args.output)
     _say(args, f"{args.output}: neutral frame {keys.neutral_frame}; " + _describe_keys(keys))
+    if not args.quiet:
+        errors, unit = fit_errors(tracks, keys)
+        _say(args, "fit: " + "; ".join(f"{r}: K = {len(keys.keys_of(r))}, RMS error {e:.2f} {unit}"
+                                       for r, e in errors.items()))
 
 
 def _describe_keys(keys) -> str:
@@ -279,7 +261,8 @@ def _run(args, video: Path) -> None:
     from .workflow import RunOptions, run_take
 
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
-                         n_keys=args.count, method=args.method, neutral=args.neutral,
+                         n_keys=args.count, max_error=args.max_error, method=args.method,
+                         neutral=args.neutral,
                          capture=_capture_kwargs(args), preview=not args.no_preview,
                          **_solve_kwargs(args))
     summary = run_take(video, args.output, options, progress=_progress(args))
@@ -298,7 +281,7 @@ def cmd_run(args) -> None:
 
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
-    args.map, args.keys = None, None
+    args.map, args.keys, args.max_error = None, None, 2.0
     args.start, args.end, args.fps, args.face, args.no_preview = 0, None, None, 0, False
     args.one_euro, args.smooth, args.max, args.convex = None, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, False
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))

@@ -21,6 +21,7 @@ from .exceptions import InputError
 from .filters import GapReport, gap_report, hold_neutral
 from .gaze import Gaze, estimate_gaze
 from .keyshapes import find_keyshapes
+from .metrics import face_scale, reconstruction_error
 from .schemes import face_triangles, resolve_regions, stable_points
 
 __all__ = ["discover_keys", "solve_take", "default_character", "Solved"]
@@ -37,8 +38,9 @@ def _check_neutral(track: Track, neutral: int | None, stable: np.ndarray) -> int
 
 
 def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = "upper-lower",
-                  n_keys: int = 8, method: str = "spa", neutral: int | None = None,
-                  take: str | Sequence[str] = "", stable: np.ndarray | None = None) -> KeyShapes:
+                  n_keys: int | str = 8, method: str = "spa", neutral: int | None = None,
+                  take: str | Sequence[str] = "", stable: np.ndarray | None = None,
+                  upper: float | None = DEFAULT_UPPER, max_error: float = 2.0) -> KeyShapes:
     """Key shapes of one take, or one key set across several takes of the same actor.
 
     Pick the neutral frame (of the first take), align every frame of every take onto it,
@@ -50,12 +52,14 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
     track : Track in image coordinates, or a sequence of them (same landmark scheme)
     regions : region scheme name, REGIONS.json path (see :func:`keyshape.schemes.resolve_regions`)
         or a dict region -> (n_region_landmarks,) int
-    n_keys : key shapes per region
+    n_keys : key shapes per region, or "auto": the fewest per region whose RMS error is below
+        ``max_error`` (% of the inter-ocular distance; see :func:`keyshape.keyshapes.find_keyshapes`)
     method : "spa", "hull" or "spread"
     neutral : the neutral frame of the first take, or None to choose it automatically
         (:func:`keyshape.align.choose_neutral`: the frame closest to the median aligned shape)
     take : a name per take, recorded with every key
     stable : (n_stable,) int landmarks to align on (default: the scheme's stable points)
+    upper : the weight bound the keys will be solved with (selection fits under it)
     """
     tracks = [track] if isinstance(track, Track) else list(track)
     takes = [take] if isinstance(take, str) else list(take)
@@ -75,7 +79,7 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
     aligned = [align(t, reference=reference, stable=stable)[0].points for t in tracks]
     together = Track(np.concatenate(aligned), first.fps)
     keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
-                          neutral_frame=neutral, stable=stable)
+                          neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)
     return _split_takes(keys, [t.n_frames for t in tracks], takes)
 
 
@@ -138,6 +142,21 @@ def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMO
     weights = Weights(values, keys.names, track.fps)
     gaze = estimate_gaze(aligned.points, reference=keys.neutral) if track.n_landmarks == 478 else None
     return Solved(weights, poses, aligned, gaps, gaze)
+
+
+def fit_errors(tracks: Track | Sequence[Track], keys: KeyShapes, *,
+               upper: float | None = DEFAULT_UPPER) -> tuple[dict[str, float], str]:
+    """RMS reconstruction error per region of the key set's best bounded fit of the take(s).
+
+    Returns ``({region: error}, unit)``, errors in % of the inter-ocular distance (or of the
+    face size for schemes without eye corners; see :func:`keyshape.metrics.face_scale`).
+    """
+    tracks = [tracks] if isinstance(tracks, Track) else list(tracks)
+    stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
+    points = np.concatenate([align(t, reference=keys.neutral, stable=stable)[0].points for t in tracks])
+    errors = reconstruction_error(Track(points, tracks[0].fps), keys, upper=upper)
+    length, unit = face_scale(keys.neutral)
+    return {region: 100 * e / length for region, e in errors.items()}, unit
 
 
 def _segments(gaps: GapReport) -> list[tuple[int, int]]:

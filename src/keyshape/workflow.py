@@ -32,7 +32,8 @@ class RunOptions:
     mapping: Path | None = None
     keys: Path | None = None  # reuse this key set instead of discovering one
     regions: str | Path = "upper-lower"
-    n_keys: int = 8
+    n_keys: int | str = 8  # or "auto"
+    max_error: float = 2.0  # % inter-ocular distance, for n_keys="auto"
     method: str = "spa"
     neutral: int | None = None
     capture: dict = field(default_factory=dict)  # start, end, fps, face, one_euro
@@ -122,7 +123,8 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
         keys = load_keys(options.keys)
     else:
         keys = discover_keys(track, regions=options.regions, n_keys=options.n_keys,
-                             method=options.method, neutral=options.neutral, take=video.name)
+                             method=options.method, neutral=options.neutral, take=video.name,
+                             upper=options.upper, max_error=options.max_error)
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
     rig, mapping = _rig_and_mapping(options, keys)
