@@ -21,12 +21,16 @@ Methods
     Successive projection (Gillis & Vavasis 2014), the provably robust algorithm for
     separable non-negative factorisation, grown one key at a time and refined by
     exchanges that lower the reconstruction error of all frames; never worse than the
-    ``spread`` or ``hull`` set (see :func:`keyshape._select.spa_steps`).
+    ``spread`` or ``hull`` set without near-neutral frames (see
+    :func:`keyshape._select.spa_steps`).
 
 The error ``spa`` minimises is that of the weights the product solves: ``w >= 0``, and
-``w <= upper`` when a bound is given. With ``upper=1`` a key is only worth its delta at
-full weight, so the keys are strong, real expressions and never a frame near the neutral
-that the fit would scale up several times.
+``w <= upper`` (default 1). Under the bound a key is only worth its delta at full weight,
+so no key is a frame near the neutral that the fit would scale up several times. And
+``spa`` keys are strong frames by rule: a frame whose delta is below a quarter of the
+region's 95th-percentile delta (``_select.MIN_STRENGTH``) is never a key, however much it
+would lower the error (faint frames explain the small wobbles of the many resting frames,
+which an artist cannot sculpt).
 
 The number of keys can be chosen per region from an error target (``n_keys="auto"``,
 :func:`choose_n_keys`): the smallest ``K`` whose RMS reconstruction error is below
