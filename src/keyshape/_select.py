@@ -26,6 +26,7 @@ References
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Iterator
 from itertools import islice
 
@@ -42,8 +43,9 @@ MIN_STRENGTH = 0.25  # spa keys: delta at least this fraction of the region's 95
 class Objective:
     """The exact error ``E_u(S)`` of key sets ``S`` (rows of ``X``), each set fitted once.
 
-    Fits are exact batched bounded NNLS (:func:`keyshape.decompose.solve_nnls`) and cached
-    by the set, so the selection and the error-vs-K table share them.
+    Fits are exact batched bounded NNLS (:func:`keyshape.decompose.solve_nnls`). Errors are
+    cached by the set, so the selection and the error-vs-K table share them; the weights
+    only for the last few sets (they take ``n_frames × n_keys`` floats each).
 
     Parameters
     ----------
@@ -57,12 +59,15 @@ class Objective:
     bound : float, ``u`` (``inf`` when None)
     """
 
+    _KEPT = 4  # sets whose weights are kept
+
     def __init__(self, X: np.ndarray, upper: float | None = None):
         self.X = np.asarray(X, dtype=float)
         self.upper = None if upper is None else float(upper)
         self.bound = np.inf if upper is None else float(upper)
         self.gram = self.X @ self.X.T
-        self._fits: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}
+        self._errors: dict[tuple[int, ...], float] = {}
+        self._fits: OrderedDict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
     def fit(self, rows) -> tuple[np.ndarray, np.ndarray]:
         """``(weights (n_frames, n_keys) in the order of rows, squared errors (n_frames,))``."""
@@ -73,6 +78,10 @@ class Objective:
             basis = self.X[list(key)]
             w = solve_nnls(basis.T, self.X, upper=self.upper)
             self._fits[key] = (w, ((self.X - w @ basis) ** 2).sum(axis=1))
+            self._errors[key] = float(self._fits[key][1].sum())
+            if len(self._fits) > self._KEPT:
+                self._fits.popitem(last=False)
+        self._fits.move_to_end(key)
         w, cost = self._fits[key]
         out = np.empty_like(w)
         out[:, order] = w
@@ -80,7 +89,8 @@ class Objective:
 
     def __call__(self, rows) -> float:
         """``E_u(rows)``."""
-        return float(self.fit(rows)[1].sum())
+        key = tuple(sorted(int(i) for i in rows))
+        return self._errors[key] if key in self._errors else float(self.fit(rows)[1].sum())
 
 
 def spread(X: np.ndarray, n_keys: int, *, axes: np.ndarray | None = None) -> np.ndarray:
