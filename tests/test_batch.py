@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -174,6 +175,9 @@ def ray_head(tmp_path_factory):
             os.killpg(head.pid, signal.SIGKILL)
             head.wait()
         log.close()
+        current = Path(tempfile.gettempdir()) / "ray" / "ray_current_cluster"  # left by this head
+        if current.is_file() and current.read_text().strip() == f"127.0.0.1:{port}":
+            current.unlink()
 
 
 def _wait_for_port(port: int, head: subprocess.Popen, timeout: float = 120) -> None:

@@ -52,12 +52,14 @@ class RayRunner:
         self.address = address
         self._ray = None
         self._started = False
+        self._depth = 0  # re-entrant: only the outermost exit stops the Ray it started
 
     def __enter__(self) -> RayRunner:
         ray = self._ray = _import_ray()
-        if not ray.is_initialized():
+        if self._depth == 0 and not ray.is_initialized():
             ray.init(**self._init_kwargs())
             self._started = True
+        self._depth += 1
         return self
 
     def _init_kwargs(self) -> dict:
@@ -66,10 +68,12 @@ class RayRunner:
                   "configure_logging": True, "runtime_env": runtime_env}
         if self.address is not None:
             return {"address": self.address, **common}
-        return {"num_cpus": self.workers or os.cpu_count() or 1, **common}
+        # "local": always a private instance, never a cluster found in RAY_ADDRESS or /tmp/ray
+        return {"address": "local", "num_cpus": self.workers or os.cpu_count() or 1, **common}
 
     def __exit__(self, *exc) -> None:
-        if self._started:
+        self._depth -= 1
+        if self._depth == 0 and self._started:
             self._ray.shutdown()
             self._started = False
 
