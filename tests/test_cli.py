@@ -192,3 +192,21 @@ def test_count_auto_reaches_the_target(demo_out, tmp_path, capsys):
     for region, k, error in found:
         assert float(error) < 1.5
         assert len(keys.keys_of(region)) == int(k) and 1 <= int(k) <= 24
+
+
+def test_gaze_reaches_live_link(demo_out, tmp_path):
+    import json
+
+    from keyshape.io.livelink import ROTATION_NAMES, read_livelink_csv
+
+    mapping = tmp_path / "map.json"
+    mapping.write_text(json.dumps({"upper_00": {"eyeBlinkLeft": 1.0}, "lower_00": {"jawOpen": 1.0}}))
+    out = tmp_path / "take.csv"
+    assert main(["retarget", str(demo_out / "weights.csv"), "--map", str(mapping), "--format", "livelink",
+                 "--track", str(demo_out / "track.npz"), "-o", str(out), "-q"]) == 0
+    take = read_livelink_csv(out, fps=23.976)
+    eyes = take.rotations[:, [ROTATION_NAMES.index(n) for n in ("LeftEyeYaw", "LeftEyePitch",
+                                                               "RightEyeYaw", "RightEyePitch")]]
+    assert np.abs(eyes).max() > np.radians(3)  # the actor's eyes move in this clip
+    left, right = eyes[:, 0], eyes[:, 2]
+    assert np.corrcoef(left, right)[0, 1] > 0.5  # both eyes turn together

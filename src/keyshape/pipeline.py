@@ -170,9 +170,16 @@ def _segments(gaps: GapReport) -> list[tuple[int, int]]:
 
 def head_poses(track: Track) -> Poses:
     """Head motion of a take relative to its own automatically chosen neutral frame."""
+    return head_and_gaze(track)[0]
+
+
+def head_and_gaze(track: Track) -> tuple[Poses, Gaze | None]:
+    """Head poses and (MediaPipe tracks) per-eye gaze, relative to the take's own neutral frame."""
     stable = stable_points(track.n_landmarks)
     neutral = choose_neutral(track, stable=stable)
-    return align(track, reference=track.points[neutral], stable=stable)[1]
+    aligned, poses = align(track, reference=track.points[neutral], stable=stable)
+    gaze = estimate_gaze(aligned.points, neutral_frame=neutral) if track.n_landmarks == 478 else None
+    return poses, gaze
 
 
 def arkit_scores(track: Track, *, source: str | Path = "track") -> Weights:

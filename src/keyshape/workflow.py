@@ -96,7 +96,8 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     save_keys(keys, stage / "keys.json")
     save_weights_csv(solved.weights, stage / "weights.csv")
     anim = retarget(solved.weights, mapping)
-    source = options.rig if options.rig is not None and options.rig.suffix.lower() in (".glb", ".gltf") else None
+    source = options.rig if options.rig is not None and options.rig.is_file() and \
+        options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes)
     save_take_info(stage / "take.json", video=video, track=track, keys=keys)

@@ -35,7 +35,8 @@ def add_arguments(p) -> None:
     p.add_argument("--map", type=Path, default=None, metavar="MAP.json",
                    help="key -> targets gains (JSON); default: each key drives the target of its name")
     p.add_argument("--track", type=Path, default=None,
-                   help="track file: also animate the head rotation")
+                   help="track file: also animate the head rotation (and the eyes, where the rig "
+                        "has eye nodes, and in Live Link Face CSV)")
     p.add_argument("--allow-extra", action="store_true",
                    help="without --map: let rig targets that no key drives stay at 0 (default: an error "
                         "listing them)")
@@ -59,10 +60,12 @@ def run(args) -> None:
     weights = load_weights_csv(args.weights)
     rig = _rig(args, formats, Format)
     anim = retarget(weights, _mapping(args, weights, rig))
-    poses = _poses(args, weights)
+    poses, gaze = _poses(args, weights)
+    eyes = gaze.rotations() if gaze is not None else None
     source = args.rig if rig is not None and args.rig.is_file() and args.rig.suffix.lower() != ".obj" else None
     for out, chosen in zip(args.output, formats):
-        export(anim, out, rig=rig, poses=poses, format=chosen, source=source, head=args.head)
+        export(anim, out, rig=rig, poses=poses, format=chosen, source=source, head=args.head,
+               eyes=eyes)
         if not args.quiet:
             print(_summary(out, chosen, anim, Format))
 
@@ -86,15 +89,16 @@ def _mapping(args, weights, rig):
 
 
 def _poses(args, weights):
+    """(head poses, gaze) from --track, or (None, None)."""
     if args.track is None:
-        return None
+        return None, None
     from ..io.track import load_track
-    from ..pipeline import head_poses
+    from ..pipeline import head_and_gaze
 
     track = load_track(args.track)
     if track.n_frames != weights.n_frames:
         raise InputError(f"{args.track}: has {track.n_frames} frames but {args.weights} has {weights.n_frames}")
-    return head_poses(track)
+    return head_and_gaze(track)
 
 
 def _summary(out, chosen, anim, Format) -> str:
