@@ -56,7 +56,8 @@ class Character:
     landmark_vertices : (468,) int
         Vertex of MediaPipe landmark ``i``.
     rigid : tuple of (n_part,) int
-        Vertex sets of the rigid parts (the eyeballs).
+        Vertex sets of the rigid parts (the eyeballs: separate components, which expression
+        transfer leaves still).
     name : str
     """
 
@@ -87,8 +88,7 @@ def default_character(keys: KeyShapes) -> Rig:
     from .propose import propose_targets
 
     head = stylised_head()
-    return propose_targets(keys, head.rig, correspondence=head.correspondence(keys.n_landmarks),
-                           rigid=head.rigid)
+    return propose_targets(keys, head.rig, correspondence=head.correspondence(keys.n_landmarks))
 
 
 # --------------------------------------------------------------------------- the canonical face

@@ -496,28 +496,49 @@ def _face_camera(vertices, camera, landmarks: np.ndarray, size: int):
 
 
 def _surface_points(pixels: np.ndarray, vertices, faces, camera, size: int) -> Correspondence:
-    """Barycentric surface points under ``pixels (478, 2)`` (nearest large-part vertex off the mesh)."""
+    """Barycentric surface points under ``pixels (478, 2)``.
+
+    A pixel whose visible triangle is on a small part, or is seen from behind (the inside of
+    the head through an open mouth), takes the nearest visible front-facing vertex instead.
+    """
     from .render.raster import rasterize
 
     screen, in_front = camera.to_screen(vertices, size, size)
     face_id = rasterize(screen, faces, size, size, in_front=in_front)
-    large = _large_parts(vertices, faces)
+    usable = _large_parts(vertices, faces)[faces[:, 0]] & _front_facing(vertices, faces, face_id)
     column = np.clip(np.floor(pixels[:, 0]).astype(int), 0, size - 1)
     row = np.clip(np.floor(pixels[:, 1]).astype(int), 0, size - 1)
     hit = face_id[row, column]
     triangles = np.zeros((len(pixels), 3), dtype=np.int64)
     weights = np.zeros((len(pixels), 3))
-    ok = (hit >= 0) & large[faces[np.maximum(hit, 0), 0]]
+    ok = (hit >= 0) & usable[np.maximum(hit, 0)]
     for i in np.flatnonzero(ok):
         triangles[i] = faces[hit[i]]
         weights[i] = _screen_barycentric(pixels[i], screen[faces[hit[i]], :2])
-    visible = np.zeros(len(vertices), dtype=bool)
-    visible[faces[np.unique(face_id[face_id >= 0])].ravel()] = True
-    pool = np.flatnonzero(visible & large)
+    seen = np.unique(face_id[face_id >= 0])
+    pool = np.unique(faces[seen[usable[seen]]].ravel())
     for i in np.flatnonzero(~ok):
         nearest = pool[np.argmin(((screen[pool, :2] - pixels[i]) ** 2).sum(axis=1))]
         triangles[i], weights[i] = nearest, (1.0, 0.0, 0.0)
     return Correspondence(np.arange(len(pixels)), triangles, weights, len(pixels))
+
+
+def _front_facing(vertices: np.ndarray, faces: np.ndarray, face_id: np.ndarray) -> np.ndarray:
+    """(n_faces,) bool: False for triangles clearly seen from behind (unit normal's z < −0.5).
+
+    The front camera looks down −Z, so the inside of the back of the head, seen through an open
+    mouth, has normals pointing away from it; grazing triangles (a lid curling under) are kept.
+    Normals follow the winding, flipped if most visible triangles face away (a mesh wound the
+    other way round).
+    """
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    normal = np.cross(b - a, c - a)
+    length = np.linalg.norm(normal, axis=1)
+    facing = normal[:, 2] / np.where(length > 0, length, 1.0)
+    visible = face_id[face_id >= 0]
+    if len(visible) and (facing[visible] > 0).mean() < 0.5:
+        facing = -facing
+    return facing > -0.5
 
 
 def _large_parts(vertices, faces) -> np.ndarray:

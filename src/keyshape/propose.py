@@ -292,7 +292,7 @@ def _character(keys: KeyShapes, rig, correspondence, unit: float) -> tuple[Rig, 
 
         head = stylised_head()
         corr = head.correspondence(keys.n_landmarks) if correspondence is None else correspondence
-        return head.rig, resolve_correspondence(corr, head.rig, keys.n_landmarks), head.rigid
+        return head.rig, resolve_correspondence(corr, head.rig, keys.n_landmarks), ()
     if isinstance(rig, (str, Path)):
         rig = _load(Path(rig), unit)
     return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks), ()

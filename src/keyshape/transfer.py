@@ -45,6 +45,7 @@ References
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -54,7 +55,7 @@ from scipy import sparse
 from .align import procrustes
 from .containers import KeyShapes
 from .correspond import Correspondence, weld_vertices
-from .exceptions import InputError, RigError
+from .exceptions import DegenerateFrameWarning, InputError, RigError
 from .schemes import REGION_SCHEMES, resolve_regions, stable_points
 
 __all__ = ["LandmarkMotion", "landmark_motion", "spread", "transfer_expressions"]
@@ -166,7 +167,9 @@ def _similarity(source: np.ndarray, target: np.ndarray):
     """
     d = source.shape[1]
     finite = np.isfinite(source).all(axis=1)
-    pose = procrustes(source[finite], target[finite, :d])
+    with warnings.catch_warnings():  # a degenerate fit is reported below, as an error
+        warnings.simplefilter("ignore", DegenerateFrameWarning)
+        pose = procrustes(source[finite], target[finite, :d])
     scale, rotation, shift = float(pose.scales[0]), pose.rotations[0], pose.translations[0]
     if not np.isfinite(scale) or scale <= 0:
         raise RigError("the corresponded landmarks are degenerate (collinear or coincident): "
