@@ -18,7 +18,14 @@ import numpy as np
 import pytest
 from conftest import read_frames, write_video
 
-from keyshape.batch import BatchRow, SequentialRunner, find_takes, format_table, is_complete, make_runner
+from keyshape.batch import (
+    BatchRow,
+    SequentialRunner,
+    find_takes,
+    format_table,
+    is_complete,
+    make_runner,
+)
 from keyshape.cli import main
 from keyshape.exceptions import InputError, MissingDependencyError
 

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator
+from typing import Self
 
 from .exceptions import MissingDependencyError
 
-__all__ = ["RayRunner", "ray_available", "WORKER_ENV"]
+__all__ = ["WORKER_ENV", "RayRunner", "ray_available"]
 
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "TQDM_DISABLE": "1"}
@@ -54,7 +55,7 @@ class RayRunner:
         self._started = False
         self._depth = 0  # re-entrant: only the outermost exit stops the Ray it started
 
-    def __enter__(self) -> RayRunner:
+    def __enter__(self) -> Self:
         ray = self._ray = _import_ray()
         if self._depth == 0 and not ray.is_initialized():
             ray.init(**self._init_kwargs())

@@ -22,11 +22,12 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Self
 
 from .exceptions import InputError, KeyshapeError
 from .workflow import RunOptions
 
-__all__ = ["BatchRow", "batch", "find_takes", "is_complete", "format_table", "VIDEO_SUFFIXES"]
+__all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", "is_complete"]
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mpg", ".mpeg", ".wmv"})
 SUMMARY_FIELDS = ("take", "frames", "detection_rate", "keys", "error_pct", "status", "seconds", "error")
@@ -192,7 +193,7 @@ class SequentialRunner:
     name = "sequential"
     n_workers = 1
 
-    def __enter__(self) -> SequentialRunner:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -221,7 +222,7 @@ def make_runner(*, sequential: bool = False, workers: int | None = None, address
 
 # -- the batch ------------------------------------------------------------------------------------
 
-def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions = RunOptions(), *,
+def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions | None = None, *,
           shared_keys: bool = False, runner=None, on_row: Callable[[BatchRow], None] | None = None
           ) -> list[BatchRow]:
     """Process every take into ``outdir/<stem>/``; return one row per take, in input order.
@@ -237,6 +238,7 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions =
     on_row : called with each take's row as it finishes (for progress lines)
     """
     videos, outdir = find_takes(takes), Path(outdir)
+    options = options if options is not None else RunOptions()
     if shared_keys and options.keys is not None:
         raise InputError("--keys and --shared-keys exclude each other: give one key set or discover one")
     outdir.mkdir(parents=True, exist_ok=True)
