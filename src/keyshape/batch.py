@@ -16,8 +16,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import shutil
-import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -150,39 +148,11 @@ def _track_task(job: tuple[Path, Path, dict]) -> BatchRow:
 
 
 def _run_tracked(video: Path, outdir: Path, options: RunOptions, track_path: Path):
-    """:func:`keyshape.workflow.run_take` on a track already made, with a given key set.
-
-    The same steps and the same staged, all-or-nothing move into ``outdir``; the tracking time
-    of the first pass is not counted. (With a ``track=`` argument on ``run_take`` this helper
-    would be one call.)
-    """
-    from .io.keys_json import load_keys
+    """:func:`keyshape.workflow.run_take` on a track already made (the shared-keys pass)."""
     from .io.track import load_track
-    from .pipeline import solve_take
-    from .workflow import TakeSummary, _error_pct, _rig_and_mapping, _write_outputs
+    from .workflow import run_take
 
-    start = time.perf_counter()
-    track, keys = load_track(track_path), load_keys(options.keys)
-    solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
-                        convex=options.convex)
-    rig, mapping = _rig_and_mapping(options, keys)
-    outdir.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
-    try:
-        _write_outputs(stage, video, track, keys, solved, rig, mapping, options)
-        if options.extras:
-            from .report import write_take_extras
-
-            write_take_extras(stage, progress=False, preview=options.preview)
-        files = tuple(sorted(p.name for p in stage.iterdir()))
-        outdir.mkdir(exist_ok=True)
-        for name in files:
-            (stage / name).replace(outdir / name)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-    return TakeSummary(video.name, track.n_frames, float(track.valid.mean()),
-                       {r: len(keys.keys_of(r)) for r in keys.regions}, _error_pct(solved, keys),
-                       str(solved.gaps), files, time.perf_counter() - start, keys)
+    return run_take(video, outdir, options, progress=False, track=load_track(track_path))
 
 
 # -- runners --------------------------------------------------------------------------------------

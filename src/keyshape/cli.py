@@ -46,7 +46,7 @@ def _count(text: str) -> int | str:
     return "auto" if text == "auto" else whole(1, 64)(text)
 
 
-def _add_key_options(p: argparse.ArgumentParser) -> None:
+def add_key_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=("spa", "hull", "spread"), default="spa",
                    help="key-shape selection: spa = successive projection on the deltas from neutral "
                         "(default); hull = convex hull of the leading principal components (paper); "
@@ -66,7 +66,7 @@ def _add_key_options(p: argparse.ArgumentParser) -> None:
                         "closest to the median aligned shape")
 
 
-def _add_capture_options(p: argparse.ArgumentParser) -> None:
+def add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", type=int, default=0, metavar="FRAME", help="first frame to track (default 0)")
     p.add_argument("--end", type=int, default=None, metavar="FRAME",
                    help="stop before this frame (default: the last frame)")
@@ -81,7 +81,7 @@ def _add_capture_options(p: argparse.ArgumentParser) -> None:
                         "MediaPipe's video mode already smooths")
 
 
-def _add_solve_options(p: argparse.ArgumentParser) -> None:
+def add_solve_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--smooth", type=non_negative, default=DEFAULT_SMOOTHNESS, metavar="LAMBDA",
                    help=f"temporal smoothness, solved over the whole take with no lag (default "
                         f"{DEFAULT_SMOOTHNESS}; 0 = the paper's per-frame NNLS). Short gaps without a "
@@ -92,7 +92,7 @@ def _add_solve_options(p: argparse.ArgumentParser) -> None:
                    help="also require the weights of each region to sum to at most 1")
 
 
-def _solve_kwargs(args) -> dict:
+def solve_kwargs(args) -> dict:
     return {"smoothness": args.smooth, "upper": args.max, "convex": args.convex}
 
 
@@ -114,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("video", type=Path, help="video file (anything PyAV opens; rotation metadata "
                                             "is honoured) or a folder of images")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="TRACK.npz")
-    _add_capture_options(p)
+    add_capture_options(p)
 
     p = sub.add_parser("keys", parents=[common], formatter_class=_formatter,
                        help="discover key shapes (real frames) per region",
@@ -124,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="track file(s) (.npz with points and fps, or a landmark CSV frame,x0,y0[,z0],"
                         "x1,... from another tool); several takes of one actor give one key set")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="KEYS.json")
-    _add_key_options(p)
+    add_key_options(p)
 
     p = sub.add_parser("solve", parents=[common], formatter_class=_formatter,
                        help="non-negative weights of every frame on the key shapes",
@@ -133,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("track", type=Path, help="track file (.npz)")
     p.add_argument("keys", type=Path, help="key file from `keyshape keys`")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="WEIGHTS.csv")
-    _add_solve_options(p)
+    add_solve_options(p)
 
     modules = discover()
     extra = ([m for m in modules if m.VERB in STAGE_VERBS], [m for m in modules if m.VERB not in STAGE_VERBS])
@@ -153,10 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="key -> rig target gains (JSON), for rigs with their own shape set")
     p.add_argument("--keys", type=Path, default=None, metavar="KEYS.json",
                    help="reuse this key set (e.g. shared across takes) instead of discovering one")
-    _add_capture_options(p)
+    add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
-    _add_key_options(p)
-    _add_solve_options(p)
+    add_key_options(p)
+    add_solve_options(p)
     p.add_argument("--no-preview", action="store_true",
                    help="skip the side-by-side preview video (pictures and report are still written)")
 
@@ -196,13 +196,13 @@ def _say(args, text: str) -> None:
 def cmd_track(args) -> None:
     from .capture import track_to_file
 
-    summary = track_to_file(args.video, args.output, progress=_progress(args), **_capture_kwargs(args))
+    summary = track_to_file(args.video, args.output, progress=_progress(args), **capture_kwargs(args))
     n, found = summary["n_frames"], summary["n_faces"]
     _say(args, f"{args.output}: {n} frames, face in {found} ({100 * found / n:.1f} %), "
                f"{summary['fps']:g} fps")
 
 
-def _capture_kwargs(args) -> dict:
+def capture_kwargs(args) -> dict:
     return {"start": args.start, "end": args.end, "fps": args.fps, "face": args.face,
             "one_euro": _one_euro(args.one_euro)}
 
@@ -251,7 +251,7 @@ def cmd_solve(args) -> None:
 
     track = load_track(args.track)
     keys = load_keys(args.keys)
-    solved = solve_take(track, keys, **_solve_kwargs(args))
+    solved = solve_take(track, keys, **solve_kwargs(args))
     save_weights_csv(solved.weights, args.output)
     _say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys; "
                f"{solved.gaps}")
@@ -263,8 +263,8 @@ def _run(args, video: Path) -> None:
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          neutral=args.neutral,
-                         capture=_capture_kwargs(args), preview=not args.no_preview,
-                         **_solve_kwargs(args))
+                         capture=capture_kwargs(args), preview=not args.no_preview,
+                         **solve_kwargs(args))
     summary = run_take(video, args.output, options, progress=_progress(args))
     keys = summary.keys
     _say(args, f"{video.name}: {summary.n_frames} frames, face in {100 * summary.detection_rate:.1f} %, "

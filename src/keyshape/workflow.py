@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
-from .containers import KeyShapes, Rig
+from .containers import KeyShapes, Rig, Track
 from .exceptions import InputError
 
 __all__ = ["RunOptions", "TakeSummary", "run_take", "OUTPUT_FILES"]
@@ -104,8 +104,10 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
 
 
 def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOptions(), *,
-             progress: bool = True) -> TakeSummary:
+             progress: bool = True, track: Track | None = None) -> TakeSummary:
     """Track ``video``, find key shapes, solve, drive the character, write everything to ``outdir``.
+
+    ``track``: the take's track when it was made already (``video`` is then only recorded).
 
     Writes ``track.npz``, ``keys.json``, ``weights.csv``, ``animation.glb``, ``take.json`` and,
     with ``options.extras``, ``preview.mp4`` (``options.preview``), the pictures and ``report.html``.
@@ -119,7 +121,8 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     video, outdir = Path(video), Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
-    track = track_video(video, progress=progress, **options.capture)
+    if track is None:
+        track = track_video(video, progress=progress, **options.capture)
     if options.keys is not None:
         keys = load_keys(options.keys)
     else:

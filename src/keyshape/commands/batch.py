@@ -37,7 +37,7 @@ def _workers(text: str) -> int:
 
 
 def add_arguments(p) -> None:
-    from ..cli import _add_key_options, _add_solve_options
+    from ..cli import add_key_options, add_solve_options
 
     p.add_argument("takes", type=Path, nargs="+", metavar="TAKE",
                    help="video files and/or folders of videos")
@@ -52,8 +52,8 @@ def add_arguments(p) -> None:
     keys.add_argument("--shared-keys", action="store_true",
                       help="track every take, discover ONE key set across all of them "
                            "(OUTDIR/keys.json) and solve every take against it")
-    _add_key_options(p)
-    _add_solve_options(p)
+    add_key_options(p)
+    add_solve_options(p)
     where = p.add_mutually_exclusive_group()
     where.add_argument("--address", default=None, metavar="HOST:PORT",
                        help="join a running Ray cluster (the address `ray start --head` prints); "
@@ -68,12 +68,12 @@ def add_arguments(p) -> None:
 
 def run(args) -> None:
     from ..batch import batch, format_table, make_runner
-    from ..cli import _solve_kwargs
+    from ..cli import solve_kwargs
     from ..workflow import RunOptions
 
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
-                         n_keys=args.count, method=args.method, neutral=args.neutral,
-                         preview=not args.no_preview, **_solve_kwargs(args))
+                         n_keys=args.count, max_error=args.max_error, method=args.method,
+                         neutral=args.neutral, preview=not args.no_preview, **solve_kwargs(args))
     runner = make_runner(sequential=args.sequential, workers=args.workers, address=args.address)
     if not args.quiet and runner.name == "sequential" and not args.sequential:
         print("keyshape: Ray is not installed; running the takes one after the other "

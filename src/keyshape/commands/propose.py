@@ -44,6 +44,9 @@ def add_arguments(p) -> None:
     p.add_argument("--mesh", action="append", default=None, metavar="NAME",
                    help="glTF mesh(es) to propose targets on (repeatable; default: those with morph targets, "
                         "else all)")
+    p.add_argument("--normalize", action="store_true",
+                   help="mapping: scale each key's gains so the largest is 1 (stylised rigs whose targets "
+                        "exaggerate; default: gains that reproduce the actor's amplitude)")
     p.add_argument("--falloff", type=float, default=1.0,
                    help="transfer: how far motion spreads beyond the moving landmarks, in face radii (default 1)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
@@ -93,7 +96,7 @@ def _propose_mapping(args, keys, rig) -> None:
 
     corr = resolve_correspondence(args.correspondence, rig, keys.n_landmarks)
     _save_correspondence(args, corr)
-    mapping = propose_mapping(keys, rig, correspondence=corr)
+    mapping = propose_mapping(keys, rig, correspondence=corr, normalize=args.normalize)
     mapping.save(args.output)
     if not args.quiet:
         print(f"{args.output}: {mapping.n_keys} keys -> {mapping.n_targets} targets "
