@@ -109,8 +109,9 @@ def propose_targets(keys: KeyShapes, character, *, correspondence=None, falloff:
 GAZE_TARGETS = ("eyeLook*",)
 
 
-def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float = 0.01, min_gain: float = 0.05,
-                    rescale: bool = True, exclude: Sequence[str] = GAZE_TARGETS) -> Mapping:
+def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float = 3e-3, min_gain: float = 0.05,
+                    max_gain: float | None = 2.0, normalize: bool = False, rescale: bool = True,
+                    exclude: Sequence[str] = GAZE_TARGETS) -> Mapping:
     """A key → target mapping onto a rig's own blendshapes, by non-negative least squares.
 
     Parameters
@@ -127,6 +128,13 @@ def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float =
     min_gain : float, keyword-only
         Gains below ``min_gain`` times the key's largest gain are dropped, and the rest refitted,
         so the mapping stays short enough to read.
+    max_gain : float or None, keyword-only
+        Upper bound of every gain (bounded least squares, BVLS): targets are made for weights
+        up to 1, and a much larger gain means a target is being bent to a use it was not made for.
+    normalize : bool, keyword-only
+        Scale each key's gains so the largest is 1: the key, an extreme frame of the performance,
+        drives its strongest target fully. For stylised rigs whose targets exaggerate (the
+        geometric fit gives small gains there); off, the gains reproduce the actor's amplitude.
     rescale : bool, keyword-only
         See :func:`keyshape.transfer.landmark_motion`.
     exclude : sequence of str, keyword-only
@@ -144,24 +152,41 @@ def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float =
     ------
     RigError
         A rig without targets (use :func:`propose_targets`).
+
+    References
+    ----------
+    .. [1] Lawson & Hanson (1974), NNLS; P. B. Stark and R. L. Parker, "Bounded-variable least-squares:
+       an algorithm and applications", Computational Statistics 10, 1995 (BVLS).
     """
     rig = _as_rig(rig)
     if rig.n_targets == 0:
         raise RigError("the rig has no blendshapes to combine: propose target shapes instead (transfer route)")
     corr = resolve_correspondence(correspondence, rig, keys.n_landmarks)
-    motion = landmark_motion(keys, corr, rig.vertices, rig.faces, rescale=rescale)
-    used = np.flatnonzero(motion.constrained)
-    dims = slice(0, motion.n_dims)  # 2D keys say nothing about depth
-    trust = np.sqrt(motion.confidence[used])[None, :, None]  # weighted least squares
-    # t: target, c: point, d: dimension -> A (c·d, t)
-    basis = (corr.points(rig.deltas)[:, used, dims] * trust).reshape(rig.n_targets, -1).T
-    wanted = (motion.deltas[:, used, dims] * trust).reshape(keys.n_keys, -1)
-    penalty = _penalties(len(used), rig.deltas, ridge)
+    basis, wanted, n_points = _mapping_system(keys, rig, corr, rescale)
+    penalty = _penalties(n_points, rig.deltas, ridge)
     allowed = ~_excluded(rig.names, exclude)
     gains = np.zeros((rig.n_targets, keys.n_keys))
     for k, b in enumerate(wanted):
-        gains[allowed, k] = _fit_gains(basis[:, allowed], b, penalty[allowed], min_gain)
+        gains[allowed, k] = _fit_gains(basis[:, allowed], b, penalty[allowed], min_gain, max_gain)
+    if normalize:
+        gains /= np.where(gains.max(axis=0) > 0, gains.max(axis=0), 1.0)
     return Mapping(gains, keys.names, rig.names)
+
+
+def _mapping_system(keys: KeyShapes, rig: Rig, corr: Correspondence, rescale: bool):
+    """``A (n_rows, n_targets)``, ``b (n_keys, n_rows)`` and the number of points used.
+
+    Rows are the constrained points' coordinates (x, y for 2D key shapes), each weighted by the
+    square root of the point's confidence (weighted least squares).
+    """
+    motion = landmark_motion(keys, corr, rig.vertices, rig.faces, rescale=rescale)
+    used = np.flatnonzero(motion.constrained)
+    dims = slice(0, motion.n_dims)  # 2D keys say nothing about depth
+    trust = np.sqrt(motion.confidence[used])[None, :, None]
+    # t: target, c: point, d: dimension -> A (c·d, t)
+    basis = (corr.points(rig.deltas)[:, used, dims] * trust).reshape(rig.n_targets, -1).T
+    wanted = (motion.deltas[:, used, dims] * trust).reshape(keys.n_keys, -1)
+    return basis, wanted, len(used)
 
 
 def _excluded(names: Sequence[str], patterns: Sequence[str]) -> np.ndarray:
@@ -186,26 +211,30 @@ def _penalties(n_points: int, deltas: np.ndarray, ridge: float) -> np.ndarray:
     return ridge * n_points * mean_moving
 
 
-def _fit_gains(basis: np.ndarray, wanted: np.ndarray, penalty: np.ndarray, min_gain: float) -> np.ndarray:
-    """NNLS with a ridge term, then drop small gains and refit on the rest: ``(n_targets,)``."""
-    gains = _ridge_nnls(basis, wanted, penalty)
+def _fit_gains(basis: np.ndarray, wanted: np.ndarray, penalty: np.ndarray, min_gain: float,
+               max_gain: float | None) -> np.ndarray:
+    """Bounded NNLS with a ridge term, then drop small gains and refit on the rest: ``(n_targets,)``."""
+    gains = _ridge_nnls(basis, wanted, penalty, max_gain)
     if gains.max(initial=0) > 0 and min_gain > 0:
         keep = gains >= min_gain * gains.max()
         gains = np.zeros_like(gains)
-        gains[keep] = _ridge_nnls(basis[:, keep], wanted, penalty[keep])
+        gains[keep] = _ridge_nnls(basis[:, keep], wanted, penalty[keep], max_gain)
     return gains
 
 
-def _ridge_nnls(basis: np.ndarray, wanted: np.ndarray, penalty: np.ndarray) -> np.ndarray:
-    """``argmin_{m ≥ 0} ‖A m − b‖² + Σ_t λ_t m_t²`` as NNLS on ``[A; diag(√λ)] m ≈ [b; 0]``."""
-    from scipy.optimize import nnls
+def _ridge_nnls(basis: np.ndarray, wanted: np.ndarray, penalty: np.ndarray, max_gain: float | None) -> np.ndarray:
+    """``argmin_{0 ≤ m ≤ max_gain} ‖A m − b‖² + Σ_t λ_t m_t²``: NNLS (or BVLS) on ``[A; diag(√λ)] m ≈ [b; 0]``."""
+    from scipy.optimize import lsq_linear, nnls
 
     n = basis.shape[1]
     if n == 0 or not np.abs(wanted).max(initial=0) > 0:
         return np.zeros(n)
     stacked = np.vstack([basis, np.diag(np.sqrt(penalty))])
     target = np.concatenate([wanted, np.zeros(n)])
-    return nnls(stacked, target, maxiter=50 * n)[0]
+    gains = nnls(stacked, target, maxiter=50 * n)[0]
+    if max_gain is None or gains.max() <= max_gain:
+        return gains
+    return lsq_linear(stacked, target, bounds=(0.0, float(max_gain)), method="bvls").x
 
 
 def proposer(*, correspondence=None, falloff: float = 1.0, rigid: Sequence[np.ndarray] = ()):
