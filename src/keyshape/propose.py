@@ -132,9 +132,10 @@ def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float =
         Upper bound of every gain (bounded least squares, BVLS): targets are made for weights
         up to 1, and a much larger gain means a target is being bent to a use it was not made for.
     normalize : bool, keyword-only
-        Scale each key's gains so the largest is 1: the key, an extreme frame of the performance,
-        drives its strongest target fully. For stylised rigs whose targets exaggerate (the
-        geometric fit gives small gains there); off, the gains reproduce the actor's amplitude.
+        Scale each target's gains so the key that drives it most drives it fully (gain 1): keys
+        are the performance's extreme frames, so the character reaches its full expression. For
+        stylised rigs whose targets exaggerate (the geometric fit gives small gains there); off,
+        the gains reproduce the actor's amplitude.
     rescale : bool, keyword-only
         See :func:`keyshape.transfer.landmark_motion`.
     exclude : sequence of str, keyword-only
@@ -168,8 +169,10 @@ def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float =
     gains = np.zeros((rig.n_targets, keys.n_keys))
     for k, b in enumerate(wanted):
         gains[allowed, k] = _fit_gains(basis[:, allowed], b, penalty[allowed], min_gain, max_gain)
+    gains[gains < 1e-9] = 0.0  # rounding noise of the solvers
     if normalize:
-        gains /= np.where(gains.max(axis=0) > 0, gains.max(axis=0), 1.0)
+        strongest = gains.max(axis=1, keepdims=True)
+        gains /= np.where(strongest > 0, strongest, 1.0)
     return Mapping(gains, keys.names, rig.names)
 
 

@@ -45,8 +45,8 @@ def add_arguments(p) -> None:
                    help="glTF mesh(es) to propose targets on (repeatable; default: those with morph targets, "
                         "else all)")
     p.add_argument("--normalize", action="store_true",
-                   help="mapping: scale each key's gains so the largest is 1 (stylised rigs whose targets "
-                        "exaggerate; default: gains that reproduce the actor's amplitude)")
+                   help="mapping: scale each target's gains so the key driving it most drives it fully "
+                        "(stylised rigs whose targets exaggerate; default: the actor's amplitude)")
     p.add_argument("--falloff", type=float, default=1.0,
                    help="transfer: how far motion spreads beyond the moving landmarks, in face radii (default 1)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
