@@ -35,7 +35,8 @@ from .containers import KeyShapes, Track, Weights
 from .exceptions import InputError
 from .filters import find_gaps
 from .io.atomic import atomic_path
-from .schemes import eye_corners, stable_points
+from .metrics import face_scale as metrics_face_scale
+from .schemes import stable_points
 
 __all__ = ["FitQuality", "fit_quality", "face_scale", "gap_runs", "take_numbers", "write_report",
            "write_take_extras", "write_take_preview", "TakeExtras", "HULL_TOLERANCE"]
@@ -71,14 +72,8 @@ class FitQuality:
 
 
 def face_scale(keys: KeyShapes) -> tuple[float, str]:
-    """(length, unit): the neutral's inter-ocular distance (image plane), or its size if unknown."""
-    corners = eye_corners(keys.n_landmarks)
-    if corners is not None:
-        length = float(np.linalg.norm(keys.neutral[corners[0], :2] - keys.neutral[corners[1], :2]))
-        if length > 0:
-            return length, "% inter-ocular"
-    xy = keys.neutral[:, :2]
-    return float(2 * np.sqrt(((xy - xy.mean(axis=0)) ** 2).sum(axis=1).mean())), "% face size"
+    """(length, unit) errors are measured against: :func:`keyshape.metrics.face_scale` of the neutral."""
+    return metrics_face_scale(keys.neutral)
 
 
 def fit_quality(aligned: Track, keys: KeyShapes, weights: Weights, *,
