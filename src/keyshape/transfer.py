@@ -403,10 +403,6 @@ def transfer_expressions(keys: KeyShapes, vertices: np.ndarray, faces: np.ndarra
     Returns
     -------
     (n_keys, n_vertices, 3) float
-
-    Examples
-    --------
-    >>> from keyshape.datasets import make_performance  # doctest: +SKIP
     """
     vertices = np.asarray(vertices, dtype=float)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
