@@ -210,3 +210,26 @@ def test_gaze_reaches_live_link(demo_out, tmp_path):
     assert np.abs(eyes).max() > np.radians(3)  # the actor's eyes move in this clip
     left, right = eyes[:, 0], eyes[:, 2]
     assert np.corrcoef(left, right)[0, 1] > 0.5  # both eyes turn together
+
+
+def test_run_auto_targets_onto_a_human_like_rig(demo_clip, demo_out, tmp_path):
+    """One command, no sculpting: the stylised head of the demo, as a rig with its own shapes."""
+    out = tmp_path / "auto"
+    assert main(["run", str(demo_clip), "--end", "96", "--rig", str(demo_out / "animation.glb"),
+                 "--auto-targets", "--no-preview", "-o", str(out), "-q"]) == 0
+    report = validate(out / "animation.glb")
+    assert report["numErrors"] == 0, report["messages"][:5]
+    anim = read_glb_animation(out / "animation.glb")
+    assert anim.weights.shape[0] == 96 and anim.weights.max() > 0.05
+
+
+def test_run_auto_targets_on_a_robot_asks_for_a_correspondence(demo_clip, tmp_path):
+    from conftest import SHARED
+
+    robot = SHARED / "data" / "robot-expressive" / "RobotExpressive.glb"
+    if not robot.is_file():
+        pytest.skip("shared/ (the robot test rig) is absent")
+    out = tmp_path / "robot"
+    result = _cli("run", demo_clip, "--end", "24", "--rig", robot, "--auto-targets", "--no-preview",
+                  "-o", out)
+    _assert_clean_failure(result, out, "correspondence")

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from importlib import resources
 from pathlib import Path
 
@@ -143,8 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", parents=[common], formatter_class=_formatter,
                        help="all stages: video -> track, keys, weights, animated .glb",
                        description="Track, discover keys, solve and retarget in one go. Without "
-                                   "--rig the character is a face mesh of the actor's own neutral "
-                                   "landmarks with the key frames as its targets.")
+                                   "--rig the character is keyshape's stylised head, with target "
+                                   "shapes proposed from the key shapes.")
     p.add_argument("video", type=Path, help="video file or folder of images")
     p.add_argument("--rig", type=Path, default=None,
                    help="character: OBJ folder, .glb/.gltf (kept whole, animation added) or USD, with "
@@ -153,6 +152,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="key -> rig target gains (JSON), for rigs with their own shape set")
     p.add_argument("--keys", type=Path, default=None, metavar="KEYS.json",
                    help="reuse this key set (e.g. shared across takes) instead of discovering one")
+    p.add_argument("--auto-targets", action="store_true",
+                   help="no sculpting: propose the rig's target shapes from the key shapes (or, for "
+                        "a rig with its own blendshapes, a key -> shape mapping); see "
+                        "docs/auto-targets.md")
     add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     add_key_options(p)
@@ -262,7 +265,7 @@ def _run(args, video: Path) -> None:
 
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
-                         neutral=args.neutral,
+                         neutral=args.neutral, auto_targets=args.auto_targets,
                          capture=capture_kwargs(args), preview=not args.no_preview,
                          **solve_kwargs(args))
     summary = run_take(video, args.output, options, progress=_progress(args))
@@ -281,7 +284,7 @@ def cmd_run(args) -> None:
 
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
-    args.map, args.keys, args.max_error = None, None, 2.0
+    args.map, args.keys, args.max_error, args.auto_targets = None, None, 2.0, False
     args.start, args.end, args.fps, args.face, args.no_preview = 0, None, None, 0, False
     args.one_euro, args.smooth, args.max, args.convex = None, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, False
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))

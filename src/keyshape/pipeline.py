@@ -1,8 +1,7 @@
 """The paper's method end to end, as a few calls over the stage modules.
 
-``discover_keys`` (align + select), ``solve_take`` (align onto the key set's neutral + solve)
-and ``default_character`` glue the stages the way the command line uses them; each stage
-stays usable on its own.
+``discover_keys`` (align + select) and ``solve_take`` (align onto the key set's neutral + solve)
+glue the stages the way the command line uses them; each stage stays usable on its own.
 """
 
 from __future__ import annotations
@@ -15,16 +14,16 @@ import numpy as np
 
 from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from .align import align, choose_neutral
-from .containers import KeyShapes, Poses, Rig, Track, Weights
+from .containers import KeyShapes, Poses, Track, Weights
 from .decompose import solve_weights
 from .exceptions import InputError
 from .filters import GapReport, gap_report, hold_neutral
 from .gaze import Gaze, estimate_gaze
 from .keyshapes import find_keyshapes
 from .metrics import face_scale, reconstruction_error
-from .schemes import face_triangles, resolve_regions, stable_points
+from .schemes import resolve_regions, stable_points
 
-__all__ = ["discover_keys", "solve_take", "default_character", "Solved"]
+__all__ = ["discover_keys", "solve_take", "fit_errors", "head_and_gaze", "arkit_scores", "Solved"]
 
 
 def _check_neutral(track: Track, neutral: int | None, stable: np.ndarray) -> int:
@@ -188,23 +187,3 @@ def arkit_scores(track: Track, *, source: str | Path = "track") -> Weights:
         raise InputError(f"{source}: has no blendshape scores (tracks from `keyshape track` do)")
     keep = [i for i, n in enumerate(track.blendshape_names) if not n.startswith("_")]
     return Weights(track.blendshapes[:, keep], [track.blendshape_names[i] for i in keep], track.fps)
-
-
-def default_character(keys: KeyShapes) -> Rig:
-    """The demo's character: a face mesh of the actor's neutral landmarks, one target per key.
-
-    Needs a 3D MediaPipe track (the mesh is MediaPipe's face tessellation).
-    """
-    from .rig import rig_from_keyshapes
-
-    if keys.n_landmarks not in (468, 478) or keys.n_dims != 3:
-        raise InputError("the default character needs a 3D MediaPipe track; give a rig with --rig")
-    rig = rig_from_keyshapes(keys, face_triangles())
-    return Rig(rig.vertices, _facing_viewer(rig.vertices, rig.faces), rig.deltas, rig.names)
-
-
-def _facing_viewer(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Wind every triangle counter-clockwise as seen from +Z (glTF front faces toward the viewer)."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    normal_z = np.cross(b - a, c - a)[:, 2]
-    return np.where((normal_z < 0)[:, None], faces[:, [0, 2, 1]], faces)

@@ -40,6 +40,7 @@ class RunOptions:
     smoothness: float = DEFAULT_SMOOTHNESS
     upper: float | None = DEFAULT_UPPER
     convex: bool = False
+    auto_targets: bool = False  # propose the rig's targets (or a mapping) for the keys
     preview: bool = True
     extras: bool = True
 
@@ -59,15 +60,25 @@ class TakeSummary:
     keys: KeyShapes = field(repr=False, compare=False, default=None)
 
 
-def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object]:
-    from .pipeline import default_character
+def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object, bool]:
+    """The character, the key -> target mapping, and whether the rig file is kept whole."""
     from .retarget import Mapping
     from .rig import load_rig
 
-    rig = load_rig(options.rig) if options.rig is not None else default_character(keys)
+    if options.rig is None:
+        from .characters import default_character
+
+        rig = default_character(keys)  # a stylised head with proposed targets (issue 7)
+        return rig, Mapping.by_name(keys.names, rig.names), False
+    if options.auto_targets:
+        from .propose import auto_targets
+
+        auto = auto_targets(keys, options.rig)
+        return auto.rig, auto.mapping, auto.route == "mapping"
+    rig = load_rig(options.rig)
     if options.mapping is not None:
-        return rig, Mapping.from_file(options.mapping, targets=rig.names)
-    return rig, Mapping.by_name(keys.names, rig.names)
+        return rig, Mapping.from_file(options.mapping, targets=rig.names), True
+    return rig, Mapping.by_name(keys.names, rig.names), True
 
 
 def _error_pct(solved, keys: KeyShapes) -> float:
@@ -84,7 +95,8 @@ def _error_pct(solved, keys: KeyShapes) -> float:
     return float(100 * np.sqrt(np.mean(np.sum(diff**2, axis=2))) / iod)
 
 
-def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, options) -> None:
+def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, options,
+                   keep_file: bool = True) -> None:
     from .io.export import export
     from .io.keys_json import save_keys
     from .io.take import save_take_info
@@ -96,7 +108,7 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     save_keys(keys, stage / "keys.json")
     save_weights_csv(solved.weights, stage / "weights.csv")
     anim = retarget(solved.weights, mapping)
-    source = options.rig if options.rig is not None and options.rig.is_file() and \
+    source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes)
@@ -131,11 +143,11 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
                              upper=options.upper, max_error=options.max_error)
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
-    rig, mapping = _rig_and_mapping(options, keys)
+    rig, mapping, keep_file = _rig_and_mapping(options, keys)
     outdir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
     try:
-        _write_outputs(stage, video, track, keys, solved, rig, mapping, options)
+        _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file)
         if options.extras:
             from .report import write_take_extras
 
