@@ -306,3 +306,46 @@ def test_propose_command_errors(mediapipe_keys, tmp_path, capsys, extra, message
                                           for a in extra]
     assert main(args) == 1
     assert message in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- the built-in stylised head
+
+
+def test_canonical_face_is_read_from_the_vendored_model():
+    from keyshape.characters import canonical_face
+
+    vertices, faces = canonical_face()
+    assert vertices.shape == (468, 3) and faces.shape == (898, 3)
+    assert 14 < np.ptp(vertices[:, 0]) < 17 and 16 < np.ptp(vertices[:, 1]) < 19  # centimetres
+    assert faces.min() == 0 and faces.max() == 467
+
+
+def test_stylised_head_is_deterministic_and_well_formed(head):
+    from keyshape.characters import stylised_head
+
+    again = stylised_head.__wrapped__()  # a fresh build, not the cached one
+    np.testing.assert_array_equal(again.rig.vertices, head.rig.vertices)
+    np.testing.assert_array_equal(again.rig.faces, head.rig.faces)
+    rig = head.rig
+    assert 10000 < rig.n_vertices < 13000 and rig.n_targets == 0
+    assert 0.2 < np.ptp(rig.vertices[:, 1]) < 0.3  # metres, +Y up
+    label = mesh_components(rig.vertices, rig.faces)
+    assert len(np.unique(label)) == 3  # the head and two eyeballs
+    assert (label[head.landmark_vertices] == 0).all()
+    assert all((label[part] != 0).all() for part in head.rigid)
+    a, b, c = (rig.vertices[rig.faces[label[rig.faces[:, 0]] == 0][:, i]] for i in range(3))
+    outward = (np.cross(b - a, c - a) * ((a + b + c) / 3 - [0, 0.012, -0.03])).sum(axis=1) > 0
+    assert outward.mean() > 0.97  # glTF front faces out
+
+
+def test_stylised_head_looks_unlike_a_person(head):
+    """Bigger eyes than the canonical face it is built from: a caricature, not the actor."""
+    from keyshape.characters import canonical_face
+
+    face = canonical_face()[0] * 0.01
+    rig = head.rig.vertices
+
+    def eye_height_over_face_width(points):
+        return np.ptp(points[[159, 145], 1]) / np.ptp(points[[234, 454], 0])
+
+    assert eye_height_over_face_width(rig) > 1.4 * eye_height_over_face_width(face)

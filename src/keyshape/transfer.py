@@ -56,9 +56,9 @@ from .align import procrustes
 from .containers import KeyShapes
 from .correspond import Correspondence, weld_vertices
 from .exceptions import DegenerateFrameWarning, InputError, RigError
-from .schemes import REGION_SCHEMES, resolve_regions, stable_points
+from .schemes import resolve_regions, stable_points
 
-__all__ = ["LandmarkMotion", "landmark_motion", "spread", "transfer_expressions"]
+__all__ = ["LandmarkMotion", "feature_groups", "landmark_motion", "spread", "transfer_expressions"]
 
 _IMAGE_TO_GLTF = np.array([1.0, -1.0, -1.0])
 _SCALE_LIMITS = (1 / 3, 3.0)
@@ -199,7 +199,7 @@ def feature_groups(n_landmarks: int) -> dict[str, np.ndarray]:
 
     Empty for landmark schemes without known features.
     """
-    if n_landmarks not in (68, 468, 478) or "eyes" not in REGION_SCHEMES:
+    if n_landmarks not in (68, 468, 478):
         return {}
     return resolve_regions("eyes", n_landmarks)
 
