@@ -163,11 +163,12 @@ def test_found_landmarks_sit_where_the_head_was_built(head):
     the render must find each landmark near that vertex."""
     rig = head.rig
     corr = find_correspondence(rig.vertices, rig.faces)
-    assert corr.n_landmarks == 478 and corr.n_corr == 478
-    found = corr.points(rig.vertices)[:468]
-    built = rig.vertices[head.landmark_vertices]
+    assert corr.n_landmarks == 478 and corr.n_corr > 430  # a few ambiguous ones are dropped
+    face = corr.landmarks < 468
+    found = corr.points(rig.vertices)[face]
+    built = rig.vertices[head.landmark_vertices][corr.landmarks[face]]
     distance = np.linalg.norm(found - built, axis=1)
-    eye_distance = np.linalg.norm(built[33] - built[263])
+    eye_distance = np.linalg.norm(rig.vertices[33] - rig.vertices[263])
     assert np.median(distance) < 0.06 * eye_distance, np.median(distance) / eye_distance
     assert np.percentile(distance, 90) < 0.15 * eye_distance
     eyes = np.concatenate(head.rigid)

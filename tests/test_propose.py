@@ -349,3 +349,14 @@ def test_stylised_head_looks_unlike_a_person(head):
         return np.ptp(points[[159, 145], 1]) / np.ptp(points[[234, 454], 0])
 
     assert eye_height_over_face_width(rig) > 1.4 * eye_height_over_face_width(face)
+
+
+def test_found_correspondence_proposes_nearly_the_built_targets(head, mediapipe_keys):
+    """The whole automatic route (render, track the render, snap, transfer) against the head's
+    built-in correspondence: the proposed targets agree to within a third of their motion."""
+    plain = Rig(head.rig.vertices, head.rig.faces, np.zeros((0, head.rig.n_vertices, 3)), ())
+    found = propose_targets(mediapipe_keys, plain)  # no correspondence: found on a render
+    built = propose_targets(mediapipe_keys, plain, correspondence=head.correspondence())
+    difference = np.linalg.norm(found.deltas - built.deltas, axis=2).sum(axis=1)
+    motion = np.linalg.norm(built.deltas, axis=2).sum(axis=1)
+    assert (difference < 0.35 * motion).all(), difference / motion

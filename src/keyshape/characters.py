@@ -358,9 +358,9 @@ def _eyeball(vertices: np.ndarray, side: str, *, n_lat: int = 16, n_lon: int = 2
     """A sphere with a raised iris behind one eye opening: vertices ``(n, 3)``, faces ``(m, 3)``."""
     loop = _feature_loops()[side]
     rim = vertices[loop]
-    width = np.ptp(rim[:, 0])
-    radius = 0.62 * width
-    centre = rim.mean(axis=0) + [0.0, 0.0, -0.72 * radius]
+    radius = 0.5 * np.ptp(rim[:, 0])
+    front = rim[:, 2].mean() - 0.08 * radius  # just behind the lids, which stay visible
+    centre = np.array([*rim[:, :2].mean(axis=0), front - radius * 1.06])
     lat = np.linspace(0, np.pi, n_lat + 1)[1:-1]
     lon = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
     theta, phi = np.meshgrid(lat, lon, indexing="ij")

@@ -323,17 +323,17 @@ def snap_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
 
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     vertices, faces = np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
-    k = min(candidates, len(vertices))
-    _, near = cKDTree(vertices).query(points, k=k)
-    near = np.asarray(near).reshape(len(points), k)
+    used = np.unique(faces)  # only vertices of some face can be closest
+    if len(used) == 0:
+        raise InputError("cannot snap points to a mesh without faces")
+    k = min(candidates, len(used))
+    _, near = cKDTree(vertices[used]).query(points, k=k)
+    near = used[np.asarray(near).reshape(len(points), k)]
     incident = _vertex_faces(faces, len(vertices))
     triangles = np.zeros((len(points), 3), dtype=np.int64)
     weights = np.zeros((len(points), 3))
     for i, point in enumerate(points):
         options = np.unique(incident[near[i]].indices)
-        if len(options) == 0:  # isolated vertices only: snap to the nearest vertex
-            triangles[i], weights[i] = near[i, 0], (1.0, 0.0, 0.0)
-            continue
         bary, dist = _closest_on_triangles(point, *(vertices[faces[options, j]] for j in range(3)))
         best = int(np.argmin(dist))
         triangles[i], weights[i] = faces[options[best]], bary[best]
