@@ -18,7 +18,10 @@ def bound(text: str) -> float | None:
     """An upper bound > 0, or ``none``/``inf``/``off`` for no bound."""
     if text.lower() in ("none", "inf", "off"):
         return None
-    value = _number(text)
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number or 'none'; got {text!r}") from None
     if not value > 0:
         raise argparse.ArgumentTypeError(f"must be > 0 or 'none'; got {value:g}")
     return value

@@ -9,11 +9,12 @@ as the unreachable lower bound; in % of the inter-ocular distance. Writes
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import time
 from pathlib import Path
+
+from ._argtypes import bound, positive, whole
 
 VERB = "report-k"
 HELP = "error against the number of key shapes K (pca, spread, hull, spa): CSV + PNG"
@@ -27,38 +28,6 @@ DESCRIPTION = ("Chuang & Bregler's comparison on a take: per region, the RMS rec
 SHOWN_KS = (1, 2, 4, 8, 12, 16, 24, 30)
 
 
-def _bound(text: str) -> float | None:
-    if text.lower() in ("none", "inf", "off"):
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number or 'none'; got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0; got {value}")
-    return value
-
-
-def _max_k(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}") from None
-    if not 1 <= value <= 200:
-        raise argparse.ArgumentTypeError(f"must be between 1 and 200; got {value}")
-    return value
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number; got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0; got {value}")
-    return value
-
-
 def add_arguments(p) -> None:
     from .._defaults import DEFAULT_UPPER
     from ..keyshapes import MAX_ERROR
@@ -67,14 +36,14 @@ def add_arguments(p) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, metavar="DIR")
     p.add_argument("--regions", default="upper-lower", metavar="SCHEME",
                    help="upper-lower (default), whole, eyes, or a REGIONS.json")
-    p.add_argument("--max-k", type=_max_k, default=30, metavar="K",
+    p.add_argument("--max-k", type=whole(1, 200), default=30, metavar="K",
                    help="largest number of key shapes per region (default 30)")
     p.add_argument("--neutral", type=int, default=None, metavar="FRAME",
                    help="the neutral frame; default: chosen automatically as in `keyshape keys`")
-    p.add_argument("--max", type=_bound, default=DEFAULT_UPPER, metavar="U",
+    p.add_argument("--max", type=bound, default=DEFAULT_UPPER, metavar="U",
                    help=f"upper bound of the weights in the fits (default {DEFAULT_UPPER:g}, as "
                         "`keyshape solve`; 'none' lifts it: the paper's NNLS)")
-    p.add_argument("--max-error", type=_positive, default=MAX_ERROR, metavar="PCT",
+    p.add_argument("--max-error", type=positive, default=MAX_ERROR, metavar="PCT",
                    help=f"error target whose K (`--count auto`) is marked and printed (default {MAX_ERROR:g} %%)")
 
 
