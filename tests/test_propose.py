@@ -151,6 +151,8 @@ def test_auto_targets_picks_the_route_from_the_rig(head, mediapipe_keys):
     gains = auto.mapping.to_dict()
     assert max(gains["upper_00"], key=gains["upper_00"].get) == "browsUp"
     assert max(gains["lower_00"], key=gains["lower_00"].get) == "jawDrop"
+    full = auto_targets(mediapipe_keys, semantic, correspondence=corr, normalize=True)
+    assert full.mapping.matrix.max(axis=1).tolist() == [1.0, 1.0]
     forced = auto_targets(mediapipe_keys, semantic, correspondence=corr, route="transfer")
     assert forced.route == "transfer" and forced.rig.names == mediapipe_keys.names
     with pytest.raises(InputError, match="route must be"):

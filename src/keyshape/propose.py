@@ -277,7 +277,7 @@ class AutoTargets:
 
 
 def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route = "auto",
-                 unit: float = 1.0, falloff: float = 1.0) -> AutoTargets:
+                 unit: float = 1.0, falloff: float = 1.0, normalize: bool = False) -> AutoTargets:
     """Propose the character's targets for ``keys`` in one call.
 
     Parameters
@@ -294,6 +294,8 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         Metres per OBJ unit of a rig path (see :func:`keyshape.rig.load_rig`).
     falloff : float, keyword-only
         Transfer route: see :func:`keyshape.transfer.spread`.
+    normalize : bool, keyword-only
+        Mapping route: see :func:`propose_mapping`.
 
     Returns
     -------
@@ -311,7 +313,7 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
     character, corr, rigid = _character(keys, rig, correspondence, unit)
     if route == "mapping" or (route == "auto" and character.n_targets > 0):
-        mapping = propose_mapping(keys, character, correspondence=corr)
+        mapping = propose_mapping(keys, character, correspondence=corr, normalize=normalize)
         return AutoTargets(character, mapping, "mapping", corr)
     proposed = propose_targets(keys, character, correspondence=corr, rigid=rigid, falloff=falloff)
     return AutoTargets(proposed, Mapping.by_name(keys.names, proposed.names), "transfer", corr)
