@@ -22,6 +22,11 @@ References
 ----------
 The Khronos Group, *glTF 2.0 Specification*, sections 3.7.2.2 (morph targets), 3.6.2.3
 (sparse accessors) and 3.11 (animations).
+
+Layout: this module holds the three writers and :func:`read_meshes`; the animation pieces
+they share with the USD and Live Link writers (checks, rotations, channels) are in
+:mod:`keyshape.io._gltf_anim`, document building and editing in :mod:`keyshape.io._gltf_edit`,
+the head and eye nodes in :mod:`keyshape.io._gltf_nodes`, reading in :mod:`keyshape.io._gltf_read`.
 """
 
 from __future__ import annotations
@@ -31,11 +36,14 @@ from pathlib import Path
 
 import numpy as np
 import pygltflib
-from scipy.spatial.transform import Rotation
 
 from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, RigError
 from . import _gltf_edit as edit
+from ._gltf_anim import (_IMAGE_TO_GLTF, _add_node_rotation, _add_rotation, _animation, _check_eyes,
+                         _check_names, _check_poses, _fill_invalid, _mesh_weights, _pose_quaternions,
+                         _times, _weights_output, head_rotations)
+from ._gltf_nodes import find_eyes, find_head
 from ._gltf_read import (ANIMATION_NAMES, GlbAnimation, Part, load_document, morph_meshes,
                          read_glb_animation, read_parts, read_rig, target_names)
 from .atomic import atomic_path
@@ -44,7 +52,6 @@ __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animatio
            "read_meshes", "GlbAnimation", "Part"]
 
 ANIMATION = ANIMATION_NAMES[0]
-_IMAGE_TO_GLTF = np.diag([1.0, -1.0, -1.0])  # C: image (x right, y down, z away) <-> glTF
 
 
 # --------------------------------------------------------------------------- a new file
@@ -106,64 +113,11 @@ def _check_suffix(path: Path) -> None:
         raise InputError(f"glTF output is binary glTF: the path must end in .glb; got {str(path)!r}")
 
 
-def _check_names(names, weights: Weights) -> None:
-    if tuple(weights.names) != tuple(names):
-        missing = [n for n in names if n not in weights.names]
-        extra = [n for n in weights.names if n not in names]
-        raise RigError(
-            f"weights must be named by the rig's targets, in rig order {list(names)}; "
-            f"got {list(weights.names)} (missing {missing}, extra {extra}); retarget them first"
-        )
-
-
-def _check_poses(poses: Poses | None, weights: Weights) -> None:
-    if poses is not None and poses.n_frames != weights.n_frames:
-        raise InputError(
-            f"poses must have one frame per weights frame ({weights.n_frames}); got {poses.n_frames}"
-        )
-
-
 def _save(path: Path, document: pygltflib.GLTF2) -> Path:
     data = b"".join(document.save_to_bytes())
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return path
-
-
-def head_rotations(poses: Poses) -> np.ndarray:
-    """(n_frames, 3, 3) float: head rotations in glTF axes from image-space poses.
-
-    2D rotations turn about the image z axis; NaN frames hold the previous valid rotation
-    (leading ones the first valid; none at all: identity).
-    """
-    rotations = _fill_invalid(_as_3d(np.asarray(poses.rotations, dtype=float)))
-    return _IMAGE_TO_GLTF @ rotations @ _IMAGE_TO_GLTF  # R_gltf = C R C (C is its own inverse)
-
-
-def _pose_quaternions(poses: Poses) -> np.ndarray:
-    """Unit quaternions ``(n_frames, 4)`` (x, y, z, w) in glTF axes from image-space rotations."""
-    rot = head_rotations(poses)
-    quats = Rotation.from_matrix(rot).as_quat() if len(rot) else np.zeros((0, 4))
-    return edit.continuous_hemisphere(quats)
-
-
-def _as_3d(rotations: np.ndarray) -> np.ndarray:
-    """(n_frames, 3, 3): a 2D rotation is a rotation about the image z axis."""
-    if rotations.shape[1] == 3:
-        return rotations
-    out = np.tile(np.eye(3), (len(rotations), 1, 1))
-    out[:, :2, :2] = rotations
-    return out
-
-
-def _fill_invalid(rotations: np.ndarray) -> np.ndarray:
-    """Hold the previous valid rotation over NaN frames; back-fill leading ones; else identity."""
-    valid = np.isfinite(rotations).all(axis=(1, 2))
-    if not valid.any():
-        return np.tile(np.eye(3), (len(rotations), 1, 1))
-    source = np.maximum.accumulate(np.where(valid, np.arange(len(valid)), -1))
-    source[source < 0] = np.flatnonzero(valid)[0]
-    return rotations[source]
 
 
 def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) -> pygltflib.GLTF2:
@@ -211,33 +165,6 @@ def _mesh(blob: edit.Blob, rig: Rig) -> pygltflib.Mesh:
     )
 
 
-def _times(blob: edit.Blob, weights: Weights) -> int:
-    return blob.add(weights.times.astype(np.float32), "SCALAR", bounds=True)
-
-
-def _weights_output(blob: edit.Blob, values: np.ndarray) -> int:
-    # glTF morph-weight output: n_frames · n_targets scalars, frame-major.
-    return blob.add(np.nan_to_num(values, nan=0.0).astype(np.float32).reshape(-1), "SCALAR")
-
-
-def _animation(times: int, weight_outputs, name: str) -> pygltflib.Animation:
-    """An animation with one LINEAR ``weights`` channel per ``(node, output accessor)``."""
-    samplers, channels = [], []
-    for node, output in weight_outputs:
-        samplers.append(pygltflib.AnimationSampler(input=times, output=output, interpolation="LINEAR"))
-        channels.append(pygltflib.AnimationChannel(
-            sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path="weights")))
-    return pygltflib.Animation(name=name, samplers=samplers, channels=channels)
-
-
-def _add_rotation(animation: pygltflib.Animation, blob: edit.Blob, times: int, node: int,
-                  quats: np.ndarray) -> None:
-    output = blob.add(quats.astype(np.float32), "VEC4")
-    animation.samplers.append(pygltflib.AnimationSampler(input=times, output=output, interpolation="LINEAR"))
-    animation.channels.append(pygltflib.AnimationChannel(
-        sampler=len(animation.samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path="rotation")))
-
-
 # --------------------------------------------------------------------------- an artist's file
 
 
@@ -263,12 +190,12 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
         rest rotation ``P`` and its own rest rotation ``R``, so it turns about its pivot. Where no
         head node is found (and none is named), it is not written, with a warning.
     head : str, optional, keyword-only
-        Name of the node to turn. Default: found (see ``_gltf_edit.find_head``).
+        Name of the node to turn. Default: found (see ``_gltf_nodes.find_head``).
     eyes : (n_frames, 2, 3, 3) float, optional, keyword-only
         Eye rotations relative to the head, image convention (as ``poses.rotations``), the
         character's left eye first; NaN frames hold the previous valid rotation. Written as the
         ``rotation`` of the eye nodes (below the head, named like ``Eye_L``/``RightEye``; see
-        ``_gltf_edit.find_eyes``), composed with their rest rotation as the head's. A character
+        ``_gltf_nodes.find_eyes``), composed with their rest rotation as the head's. A character
         without eye nodes gets none (its eyes belong to the face meshes).
     eye_nodes : (str, str), optional, keyword-only
         Names of the (left, right) eye nodes, when they cannot be found by name.
@@ -313,12 +240,6 @@ def _check_known(document, meshes, weights: Weights, source) -> None:
                        f"its targets: {sorted(known)}")
 
 
-def _check_eyes(eyes, weights: Weights) -> None:
-    if eyes is not None and np.shape(eyes) != (weights.n_frames, 2, 3, 3):
-        raise InputError(f"eyes must have shape ({weights.n_frames}, 2, 3, 3) (left, right rotations per frame); "
-                         f"got {np.shape(eyes)}")
-
-
 def _performance(document, blob, meshes, weights, source) -> tuple[pygltflib.Animation, list[int]]:
     """The ``keyshape`` animation with a ``weights`` channel per face node, and those nodes."""
     times = _times(blob, weights)
@@ -337,7 +258,7 @@ def _performance(document, blob, meshes, weights, source) -> tuple[pygltflib.Ani
 def _turn_head(document, blob, animation, nodes, poses, head, source) -> None:
     if poses is None:
         return
-    index = edit.find_head(document, nodes, name=head)
+    index = find_head(document, nodes, name=head)
     if index is None:
         warnings.warn(f"{str(source)!r}: no head node found (no joint or node named like 'head' above the "
                       "face meshes): the head rotation is not written; name the node to turn", UserWarning,
@@ -350,29 +271,13 @@ def _turn_eyes(document, blob, animation, nodes, eyes, names, source) -> None:
     if eyes is None:
         return
     head, eye_nodes = names
-    found = edit.find_eyes(document, edit.find_head(document, nodes, name=head), names=eye_nodes)
+    found = find_eyes(document, find_head(document, nodes, name=head), names=eye_nodes)
     if found is None:  # a character without eye nodes: its eyes are part of the face meshes
         return
     eyes = np.asarray(eyes, dtype=float)
     for side, node in enumerate(found):
         rotations = _fill_invalid(eyes[:, side])
         _add_node_rotation(document, blob, animation, node, _IMAGE_TO_GLTF @ rotations @ _IMAGE_TO_GLTF)
-
-
-def _add_node_rotation(document, blob, animation, node: int, world: np.ndarray) -> None:
-    """A rotation channel turning ``node`` by ``world (n_frames, 3, 3)`` (glTF axes) about its pivot."""
-    edit.as_trs(document.nodes[node])
-    times = animation.samplers[0].input
-    _add_rotation(animation, blob, times, node, edit.head_local_rotations(document, node, world))
-
-
-def _mesh_weights(mesh: pygltflib.Mesh, weights: Weights) -> np.ndarray:
-    """(n_frames, n_mesh_targets): the mesh's targets in its own order; unnamed ones at rest."""
-    names = target_names(mesh)
-    rest = list(mesh.weights or []) + [0.0] * (len(names) - len(mesh.weights or []))
-    columns = [weights.values[:, weights.names.index(n)] if n in weights.names
-               else np.full(weights.n_frames, rest[k]) for k, n in enumerate(names)]
-    return np.stack(columns, axis=1)
 
 
 # --------------------------------------------------------------------------- new targets

@@ -144,7 +144,7 @@ def write_livelink_csv(path, weights: Weights, *, poses: Poses | None = None,
     InputError
         If ``poses`` has another frame count.
     """
-    from .gltf import _check_eyes, _check_poses, _fill_invalid, head_rotations
+    from ._gltf_anim import _check_eyes, _check_poses, _fill_invalid, head_rotations
 
     sources, _ = livelink_columns(weights.names)
     if not sources:

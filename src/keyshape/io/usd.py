@@ -70,7 +70,7 @@ def write_usd(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
     RigError, InputError
         As :func:`keyshape.io.gltf.write_glb` (names, frame counts), or a bad suffix.
     """
-    from .gltf import _check_names, _check_poses, _pose_quaternions
+    from ._gltf_anim import _check_names, _check_poses, _pose_quaternions
 
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
@@ -235,7 +235,7 @@ def animate_usd(source, weights: Weights, path, *, poses: Poses | None = None) -
         No blend-shape mesh, one without a skeleton, or names the stage lacks. (Poses with no
         joint named like ``head`` are not written, with a warning.)
     """
-    from .gltf import _check_poses, head_rotations
+    from ._gltf_anim import _check_poses, head_rotations
 
     _, Sdf, _, Usd, _, _, _, _ = _pxr()
     path = Path(path)
@@ -332,7 +332,7 @@ def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, wor
 
 
 def _head_joint(joints) -> int | None:
-    from ._gltf_edit import _is_head
+    from ._gltf_nodes import _is_head
 
     heads = [k for k, joint in enumerate(joints) if _is_head(str(joint).rsplit("/", 1)[-1])]
     return min(heads, key=lambda k: (str(joints[k]).count("/"), k)) if heads else None
@@ -342,7 +342,7 @@ def _head_local(skeleton, joints, rest, head: int, world: np.ndarray) -> np.ndar
     """(n_frames, 4) quaternions (x, y, z, w): ``Pᵀ D P R`` in skeleton space (column vectors)."""
     from scipy.spatial.transform import Rotation
 
-    from ._gltf_edit import _rotation_part, continuous_hemisphere
+    from ._gltf_nodes import _rotation_part, continuous_hemisphere
 
     _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
     topology = UsdSkel.Topology(joints)
