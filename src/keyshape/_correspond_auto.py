@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .correspond import Correspondence, mesh_components, snap_to_surface
+from ._surface import mesh_components, snap_to_surface
+from .correspond import Correspondence
 from .exceptions import RigError
 
 __all__ = ["find_on_render"]
