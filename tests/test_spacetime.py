@@ -1,0 +1,197 @@
+"""The smoothed solve's parts: compiled kernels against independent references, the ADMM
+penalties, and the active-set finish that ADMM hands over to when it stalls."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import sparse
+from scipy.linalg import solveh_banded
+
+from keyshape import _activeset, _kernels, _sequence, _spacetime
+
+# --------------------------------------------------------------------------- helpers
+
+
+def dense_hessian(seq):
+    """``P = blockdiag(δ_t G) + μ LᵀL ⊗ I_K`` built from scratch, ``(T·K, T·K)``, frame-major."""
+    T, K = seq.C.shape
+    L = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(T - 2, T))
+    return (sparse.kron(sparse.diags(seq.delta), seq.G) + seq.mu * sparse.kron(L.T @ L, sparse.eye(K))).toarray()
+
+
+def sequence(seed, T=60, K=4, gaps=(), upper=1.0, convex=False, mu=0.5):
+    """A small region problem with known smooth weights, noise and optional gaps."""
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((3 * K, K))
+    W = np.clip(np.cumsum(rng.standard_normal((T, K)) * 0.15, axis=0) + 0.3, 0.0, None)
+    B = W @ A.T + 0.2 * rng.standard_normal((T, 3 * K))
+    delta = np.ones(T)
+    for a, b in gaps:
+        delta[a:b] = 0.0
+    G = A.T @ A
+    C = np.ascontiguousarray((B @ A) * delta[:, None])
+    const = float(np.sum(B[delta > 0] ** 2))
+    return _sequence.Sequence(G, C, delta, mu * np.trace(G) / K, np.full(K, upper), convex, const)
+
+
+def project_by_bisection(v, u):
+    """Projection of one row on ``{0 ≤ z ≤ u, Σ z ≤ 1}`` by bisection on the shift ``τ``."""
+    z = np.clip(v, 0.0, u)
+    if z.sum() <= 1.0:
+        return z
+    lo, hi = 0.0, float(np.max(v))
+    for _ in range(200):
+        tau = 0.5 * (lo + hi)
+        lo, hi = (tau, hi) if np.clip(v - tau, 0.0, u).sum() > 1.0 else (lo, tau)
+    return np.clip(v - 0.5 * (lo + hi), 0.0, u)
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), T=st.integers(1, 40), K=st.integers(1, 6))
+def test_pentadiagonal_solve_matches_scipy(seed, T, K):
+    rng = np.random.default_rng(seed)
+    a1, a2 = rng.uniform(-1, 1, T), rng.uniform(-1, 1, T)
+    a0 = rng.uniform(0.1, 2.0, (T, K)) + 4.0  # diagonally dominant: positive definite
+    Y = rng.standard_normal((T, K))
+    X = Y.copy()
+    _kernels.penta_solve(*_kernels.penta_factor(a0, a1, a2), X)
+    for k in range(K):
+        ab = np.zeros((3, T))
+        ab[0], ab[1, : T - 1], ab[2, : T - 2] = a0[:, k], a1[: T - 1], a2[: T - 2]
+        np.testing.assert_allclose(X[:, k], solveh_banded(ab, Y[:, k], lower=True), rtol=1e-10, atol=1e-12)
+
+
+def test_pentadiagonal_factor_refuses_an_indefinite_matrix():
+    a0 = np.array([[1.0], [-1.0], [1.0]])
+    dinv, _, _ = _kernels.penta_factor(a0, np.zeros(3), np.zeros(3))
+    assert np.isnan(dinv).all()
+    seq = sequence(0, T=10, K=2)
+    with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
+        _sequence.EigenSolver(seq, -1e6)
+
+
+def test_eigen_solver_inverts_the_shifted_hessian():
+    seq = sequence(1, T=30, K=3, gaps=[(10, 14)])
+    rho = np.random.default_rng(1).uniform(0.5, 2.0, 30)
+    R = np.random.default_rng(2).standard_normal((30, 3))
+    X = _sequence.EigenSolver(seq, rho).solve(R)
+    P = dense_hessian(seq) + np.diag(np.repeat(rho, 3))
+    np.testing.assert_allclose(X.ravel(), np.linalg.solve(P, R.ravel()), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(_sequence.hessian_mul(seq, X).ravel(), dense_hessian(seq) @ X.ravel(), atol=1e-10)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_face_factorisation_solves_the_free_block(seed):
+    rng = np.random.default_rng(seed)
+    seq = sequence(seed, T=25, K=4, gaps=[(8, 11)], convex=True)
+    free = rng.random((25, 4)) < 0.6
+    sums = rng.random(25) < 0.3
+    rho_s = 3.0
+    band = _activeset.face_band(seq, free, sums, rho_s)
+    # the band holds P + ρ_s Σ_active 1 1ᵀ on the free block and the identity elsewhere
+    M = dense_hessian(seq) + rho_s * np.kron(np.diag(sums.astype(float)), np.ones((4, 4)))
+    f = free.ravel()
+    expected = np.where(np.outer(f, f), M, 0.0) + np.diag(~f).astype(float)
+    got = np.zeros_like(expected)
+    for o in range(band.shape[1]):
+        j = np.arange(len(f) - o)
+        got[j + o, j] = got[j, j + o] = band[j, o]
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    b = rng.standard_normal(len(f)) * f
+    x = b.copy()
+    assert _kernels.band_factor(band, f)
+    _kernels.band_solve(band, f, x)
+    np.testing.assert_allclose(x, np.linalg.solve(expected, b), rtol=1e-9, atol=1e-11)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), K=st.integers(1, 9), convex=st.booleans())
+def test_projection_matches_bisection(seed, K, convex):
+    rng = np.random.default_rng(seed)
+    V = rng.uniform(-0.5, 1.2, (20, K))
+    upper = np.where(rng.random(K) < 0.3, np.inf, rng.uniform(0.1, 1.0, K))
+    Z = _sequence.project(V, upper, convex)
+    assert (Z >= 0).all() and (Z <= upper).all()
+    if convex:
+        assert (Z.sum(axis=1) <= 1.0 + 1e-12).all()
+        ref = np.array([project_by_bisection(v, upper) for v in V])
+    else:
+        ref = np.clip(V, 0.0, upper)
+    np.testing.assert_allclose(Z, ref, atol=1e-9)
+
+
+def test_admm_step_is_the_relaxed_projected_update():
+    rng = np.random.default_rng(3)
+    W, Z, U, C = (rng.standard_normal((15, 3)) for _ in range(4))
+    Z = np.clip(Z, 0, 1)
+    rho, upper, alpha = rng.uniform(0.5, 2, 15), np.ones(3), 1.6
+    hat = alpha * W + (1 - alpha) * Z
+    Z_new = np.clip(hat + U, 0, 1)
+    U_new = U + hat - Z_new
+    dz, primal = _kernels.admm_step(W, Z0 := Z.copy(), U0 := U.copy(), C, rho, upper, alpha, False)
+    np.testing.assert_allclose(Z0, Z_new)
+    np.testing.assert_allclose(U0, U_new)
+    np.testing.assert_allclose(W, C + rho[:, None] * (Z_new - U_new))  # the next right-hand side
+    assert dz == pytest.approx(np.sum((Z_new - Z) ** 2))
+    assert primal == pytest.approx(np.sum((hat - Z_new) ** 2))
+
+
+def test_point_multipliers_follow_the_active_constraints():
+    seq = sequence(4, T=20, K=3, convex=True, upper=0.6)
+    Z = np.zeros((20, 3))
+    Z[:, 0], Z[:5, 1] = 0.5, 0.5  # rows 0–4 full (Σ = 1)
+    Z[5:10, 0], Z[5:10, 1] = 0.0, 0.6  # rows 5–9: key 1 at its bound, the row not full
+    g = np.random.default_rng(4).standard_normal((20, 3))
+    Y = _kernels.point_multipliers(g, Z, seq.upper, True)
+    nu = np.maximum(g[:5, :2].mean(axis=1), 0.0)  # full rows: mean of g over the free entries
+    np.testing.assert_allclose(Y[:5, :2], np.broadcast_to(nu[:, None], (5, 2)))
+    np.testing.assert_allclose(Y[:5, 2], nu + np.minimum(g[:5, 2] - nu, 0.0))
+    np.testing.assert_allclose(Y[5:10, 1], np.maximum(g[5:10, 1], 0.0))
+    np.testing.assert_allclose(Y[5:10, 2], np.minimum(g[5:10, 2], 0.0))
+    assert (Y[10:, 0] == 0).all()
+
+
+# --------------------------------------------------------------------------- penalties and phases
+
+
+def test_gap_penalty_follows_the_gap_length():
+    seq = sequence(5, T=60, K=3, gaps=[(10, 13), (30, 45)])
+    lam = np.linalg.eigvalsh(seq.G)
+    rho = _spacetime.admm_rho(seq, lam)
+    data = np.sqrt(lam[0] * (lam[-1] + 4 * seq.mu))
+    assert rho[0] == pytest.approx(data) and rho[59] == pytest.approx(data)
+    assert rho[11] == pytest.approx(min(data, 2 * seq.mu * (np.pi / 6) ** 2))
+    assert rho[40] == pytest.approx(min(data, 2 * seq.mu * (np.pi / 18) ** 2))
+    assert rho[40] < rho[11]
+
+
+@pytest.mark.parametrize(("convex", "gaps"), [(False, ()), (True, [(20, 32)]), (False, [(5, 9), (40, 70)])])
+def test_active_set_finish_reaches_the_certified_optimum(convex, gaps):
+    seq = sequence(6, T=120, K=4, gaps=gaps, convex=convex, upper=0.6)
+    W_admm, gap_admm = _spacetime.solve_sequence(seq, rtol=1e-9)
+    # no ADMM beyond the first 20 iterations: the primal–dual active-set steps must finish
+    W_newton, gap_newton = _spacetime.solve_sequence(seq, rtol=1e-9, max_admm=20)
+    assert gap_admm <= 1e-9 and gap_newton <= 1e-9
+    F = _sequence.objective
+    assert abs(F(seq, W_newton) - F(seq, W_admm)) <= 2e-9 * F(seq, W_admm)
+    # and the monotone active-set method alone, from zero
+    best = _sequence.Best(seq, _sequence.EigenSolver(seq, 0.0), np.zeros(seq.C.shape))
+    _activeset.active_set(seq, best, max_steps=2000)
+    assert best.gap <= 1e-9
+    assert abs(best.F - F(seq, W_admm)) <= 2e-9 * F(seq, W_admm)
+
+
+def test_dual_bound_never_exceeds_the_objective():
+    seq = sequence(7, T=80, K=3, gaps=[(30, 40)], convex=True)
+    W, _ = _spacetime.solve_sequence(seq)
+    exact = _sequence.EigenSolver(seq, 0.0)
+    rng = np.random.default_rng(7)
+    for _ in range(5):  # any multipliers give a lower bound on F* (weak duality)
+        Y = _sequence.multipliers(seq, _sequence.project(W + 0.1 * rng.standard_normal(W.shape), seq.upper, True))
+        assert _sequence.lower_bound(seq, exact, Y) <= _sequence.objective(seq, W) * (1 + 1e-12)
