@@ -4,9 +4,11 @@
    ``scipy.optimize.nnls`` (the reference), K = 8, 16, 24 keys, 100,000 frames. The scipy loop
    runs on a subset (5,000 frames by default) and is extrapolated linearly; the weights of
    that subset are compared.
-2. Spacetime solve: :func:`keyshape.decompose.solve_spacetime` at K = 12 (smoothness 1,
-   upper bound 1) in frames per second, against Clarabel through qpsolvers on the same
-   problem at a smaller T (the whole sequence as one sparse QP), with the objective gap.
+2. Spacetime solve: :func:`keyshape.decompose.solve_spacetime` at K = 12 (upper bound 1) in
+   frames per second: smoothness 1 and the product's default 0.1, with a tracker's gaps
+   (5 % dropped frames, a 15-frame gap per 1,000) and with ``convex``; against Clarabel
+   through qpsolvers on the same problem at a smaller T (the whole sequence as one sparse
+   QP), with the objective gap.
 3. Peak memory (tracemalloc) against the number of frames, for both solvers.
 
 Run::
@@ -113,31 +115,53 @@ def bench_nnls(n_frames: int, subset: int, m: int, keys=(8, 16, 24), repeats: in
 # --------------------------------------------------------------------------- 2. spacetime
 
 
-def bench_spacetime(sizes, clarabel_frames: int, m: int, k: int = 12, smoothness: float = 1.0,
-                    repeats: int = 2):
+def tracking_gaps(B: np.ndarray, rng) -> np.ndarray:
+    """``B`` with what a face tracker loses: 5 % single dropped frames and a 15-frame gap
+    (half a second at 30 fps, the longest the pipeline bridges) every 1,000 frames."""
+    B = B.copy()
+    B[1:-1][rng.random(len(B) - 2) < 0.05] = np.nan
+    for start in range(500, len(B) - 20, 1000):
+        B[start : start + 15] = np.nan
+    return B
+
+
+CASES = {  # name: (smoothness, convex, with tracking gaps)
+    "smoothness 1": (1.0, False, False),
+    "smoothness 0.1 (default)": (0.1, False, False),
+    "smoothness 0.1, tracking gaps": (0.1, False, True),
+    "smoothness 0.1, convex": (0.1, True, False),
+}
+
+
+def bench_spacetime(sizes, clarabel_frames: int, m: int, k: int = 12, repeats: int = 2):
     rng = np.random.default_rng(12)
     A = region(m, k, rng)
     rows = []
 
-    def row(solver, n, times, tol=None, **extra):
+    def row(solver, case, n, times, tol=None, **extra):
         wall, cpu = times
-        return {"solver": solver, "tol": tol, "n_frames": n, "n_keys": k, "seconds": wall, "cpu_seconds": cpu,
-                "frames_per_s": n / wall, "frames_per_cpu_s": n / cpu, **extra}
+        return {"solver": solver, "case": case, "tol": tol, "n_frames": n, "n_keys": k, "seconds": wall,
+                "cpu_seconds": cpu, "frames_per_s": n / wall, "frames_per_cpu_s": n / cpu, **extra}
 
+    _, B = performance(A, 500, np.random.default_rng(0), smooth=True)
+    solve_spacetime(A, B, smoothness=1.0, upper=1.0)  # warm-up: loads the compiled kernels
     for n in sizes:
         _, B = performance(A, n, np.random.default_rng(n), smooth=True)
-        for tol in (1e-7, 1e-4):
-            t = best_time(lambda B=B, tol=tol: solve_spacetime(A, B, smoothness=smoothness, upper=1.0, tol=tol),
-                          repeats)
-            rows.append(row("keyshape", n, t, tol))
+        for case, (smoothness, convex, gaps) in CASES.items():
+            data = tracking_gaps(B, np.random.default_rng(n + 1)) if gaps else (0.6 * B if convex else B)
+            for tol in (1e-7, 1e-4) if case == "smoothness 1" else (1e-7,):
+                t = best_time(lambda data=data, tol=tol, s=smoothness, c=convex: solve_spacetime(
+                    A, data, smoothness=s, upper=1.0, convex=c, tol=tol), repeats)
+                rows.append(row("keyshape", case, n, t, tol))
+    smoothness = 1.0
     _, B = performance(A, clarabel_frames, np.random.default_rng(1), smooth=True)
     t = best_time(lambda: solve_spacetime(A, B, smoothness=smoothness, upper=1.0), repeats)
     W = solve_spacetime(A, B, smoothness=smoothness, upper=1.0)
     out = []
     t_clar = best_time(lambda: out.append(clarabel(A, B, smoothness)), 1)
     ref = objective(A, B, out[0], smoothness)
-    rows.append(row("keyshape", clarabel_frames, t, 1e-7))
-    rows.append(row("clarabel (qpsolvers)", clarabel_frames, t_clar,
+    rows.append(row("keyshape", "smoothness 1", clarabel_frames, t, 1e-7))
+    rows.append(row("clarabel (qpsolvers)", "smoothness 1", clarabel_frames, t_clar,
                     objective_rel_diff_ours_minus_clarabel=(objective(A, B, W, smoothness) - ref) / ref))
     return rows
 
@@ -204,14 +228,14 @@ def markdown(result) -> str:
             f"{r['n_frames'] / r['ours_s']:,.0f} | {r['scipy_loop_s']:.1f} ({r['scipy_loop_cpu_s']:.1f}), "
             f"extrapolated from {r['scipy_subset']:,} | {r['speedup_wall']:.1f}× / {r['speedup_cpu']:.1f}× | "
             f"{r['max_abs_diff']:.1e} |")
-    out += ["", "### Spacetime solve (K = 12, smoothness 1, upper 1)", "",
-            ("| solver | tol | frames | wall s | CPU s | frames/s wall | frames/s CPU | "
+    out += ["", "### Spacetime solve (K = 12, upper 1)", "",
+            ("| solver | case | tol | frames | wall s | CPU s | frames/s wall | frames/s CPU | "
             "objective (ours − Clarabel) / Clarabel |"),
-            "|---|---|---|---|---|---|---|---|"]
+            "|---|---|---|---|---|---|---|---|---|"]
     for r in result["spacetime"]:
         rel = r.get("objective_rel_diff_ours_minus_clarabel")
         tol = "" if r["tol"] is None else f"{r['tol']:.0e}"
-        out.append(f"| {r['solver']} | {tol} | {r['n_frames']:,} | {r['seconds']:.3f} | {r['cpu_seconds']:.3f} | "
+        out.append(f"| {r['solver']} | {r['case']} | {tol} | {r['n_frames']:,} | {r['seconds']:.3f} | {r['cpu_seconds']:.3f} | "
                    f"{r['frames_per_s']:,.0f} | {r['frames_per_cpu_s']:,.0f} | "
                    f"{'' if rel is None else f'{rel:+.1e}'} |")
     out += ["", "### Peak memory (tracemalloc) vs frames, K = 12", "",

@@ -60,7 +60,9 @@ def test_pentadiagonal_solve_matches_scipy(seed, T, K):
     a0 = rng.uniform(0.1, 2.0, (T, K)) + 4.0  # diagonally dominant: positive definite
     Y = rng.standard_normal((T, K))
     X = Y.copy()
-    _kernels.penta_solve(*_kernels.penta_factor(a0, a1, a2), X)
+    factor = tuple(np.empty_like(a0) for _ in range(3))
+    assert _kernels.penta_factor(a0, a1, a2, *factor)
+    _kernels.penta_solve(*factor, X)
     for k in range(K):
         ab = np.zeros((3, T))
         ab[0], ab[1, : T - 1], ab[2, : T - 2] = a0[:, k], a1[: T - 1], a2[: T - 2]
@@ -69,8 +71,7 @@ def test_pentadiagonal_solve_matches_scipy(seed, T, K):
 
 def test_pentadiagonal_factor_refuses_an_indefinite_matrix():
     a0 = np.array([[1.0], [-1.0], [1.0]])
-    dinv, _, _ = _kernels.penta_factor(a0, np.zeros(3), np.zeros(3))
-    assert np.isnan(dinv).all()
+    assert not _kernels.penta_factor(a0, np.zeros(3), np.zeros(3), *(np.empty_like(a0) for _ in range(3)))
     seq = sequence(0, T=10, K=2)
     with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
         _sequence.EigenSolver(seq, -1e6)
@@ -148,7 +149,8 @@ def test_point_multipliers_follow_the_active_constraints():
     Z[:, 0], Z[:5, 1] = 0.5, 0.5  # rows 0–4 full (Σ = 1)
     Z[5:10, 0], Z[5:10, 1] = 0.0, 0.6  # rows 5–9: key 1 at its bound, the row not full
     g = np.random.default_rng(4).standard_normal((20, 3))
-    Y = _kernels.point_multipliers(g, Z, seq.upper, True)
+    Y = np.full_like(g, np.nan)
+    _kernels.point_multipliers(g, Z, seq.upper, True, Y)
     nu = np.maximum(g[:5, :2].mean(axis=1), 0.0)  # full rows: mean of g over the free entries
     np.testing.assert_allclose(Y[:5, :2], np.broadcast_to(nu[:, None], (5, 2)))
     np.testing.assert_allclose(Y[:5, 2], nu + np.minimum(g[:5, 2] - nu, 0.0))

@@ -37,7 +37,9 @@ def face_band(seq: Sequence, free: np.ndarray, sums: np.ndarray, rho_s: float) -
     """Lower band ``(T·K, 2K + 1)`` of the face system, frame-major (see
     :func:`keyshape._kernels.face_band`): free rows and columns hold
     ``P + ρ_s Σ_{active t} 1 1ᵀ``, fixed ones the identity."""
-    return _kernels.face_band(seq.G, seq.delta, float(seq.mu), *seq.gram, free, sums, float(rho_s))
+    band = np.zeros((free.size, 2 * free.shape[1] + 1))
+    _kernels.face_band(seq.G, seq.delta, float(seq.mu), *seq.gram, free, sums, float(rho_s), band)
+    return band
 
 
 def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray):

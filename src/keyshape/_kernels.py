@@ -3,7 +3,8 @@
 numba is imported here and nowhere else. Every kernel works on frame-major ``(T, K)`` arrays
 (frame ``t``, key ``k``) in C order, so a sweep over frames touches memory in order and the
 inner loop over keys vectorises. Compiled code is cached on disk (``cache=True``): the first
-call in a fresh install compiles for a few seconds, later processes load it.
+call in a fresh install compiles for a few seconds, later processes load it. Large arrays are allocated by the
+callers (numpy), so that every big buffer shows in Python's memory accounting.
 
 Kernels
 -------
@@ -35,7 +36,7 @@ _jit = numba.njit(cache=True, nogil=True)
 
 
 @_jit
-def penta_factor(a0, a1, a2):
+def penta_factor(a0, a1, a2, dinv, e, f):
     """``LDLᵀ`` of ``K`` symmetric pentadiagonal systems, one per column, whose
     off-diagonals are shared by all columns.
 
@@ -45,13 +46,16 @@ def penta_factor(a0, a1, a2):
     a1 : (T,) float, ``A[t + 1, t]`` (entry ``T − 1`` unused)
     a2 : (T,) float, ``A[t + 2, t]`` (entries ``T − 2``, ``T − 1`` unused)
 
+    dinv, e, f : (T, K) float each, filled with ``1 / D[t]``, ``L[t + 1, t]`` and
+        ``L[t + 2, t]`` (allocated by the caller, so that memory shows in Python's accounting)
+
     Returns
     -------
-    dinv, e, f : (T, K) float each, ``1 / D[t]``, ``L[t + 1, t]`` and ``L[t + 2, t]``;
-        ``dinv`` is all NaN if a pivot is not positive (the matrix is not positive definite).
+    bool, False if a pivot is not positive (the matrix is not positive definite).
     """
     T, K = a0.shape
-    dinv, e, f = np.zeros((T, K)), np.zeros((T, K)), np.zeros((T, K))
+    e[:, :] = 0.0
+    f[:, :] = 0.0
     d = np.zeros(K)  # D[t − 1]
     dd = np.zeros(K)  # D[t − 2]
     for t in range(T):
@@ -62,8 +66,7 @@ def penta_factor(a0, a1, a2):
             if t >= 2:
                 p -= f[t - 2, k] * f[t - 2, k] * dd[k]
             if not p > 0.0:
-                dinv[:, :] = np.nan
-                return dinv, e, f
+                return False
             if t + 1 < T:
                 q = a1[t]
                 if t >= 1:
@@ -74,7 +77,7 @@ def penta_factor(a0, a1, a2):
             dinv[t, k] = 1.0 / p
             dd[k] = d[k]
             d[k] = p
-    return dinv, e, f
+    return True
 
 
 @_jit
@@ -127,12 +130,34 @@ def add_smoothness(Y, X, delta, mu, d0, d1, d2):
 
 
 @_jit
-def _capped_simplex_row(v, u, out):
+def _sum_at(v, u, tau):
+    """``s(τ) = Σ_i clip(v_i − τ, 0, u_i)``."""
+    s = 0.0
+    for i in range(v.shape[0]):
+        s += min(max(v[i] - tau, 0.0), u[i])
+    return s
+
+
+@_jit
+def _insert(sorted_, n, value):
+    """Insert ``value`` into ``sorted_[:n]`` (ascending); returns ``n + 1``."""
+    j = n
+    while j > 0 and sorted_[j - 1] > value:
+        sorted_[j] = sorted_[j - 1]
+        j -= 1
+    sorted_[j] = value
+    return n + 1
+
+
+@_jit
+def _capped_simplex_row(v, u, out, work):
     """``out ← argmin ‖z − v‖`` over ``{0 ≤ z ≤ u, Σ z ≤ 1}`` for one row (length ``K``).
 
     If clipping leaves the sum above 1, the answer is ``clip(v − τ, 0, u)`` with ``τ > 0``
-    such that the sum is 1; the sum falls piecewise linearly in ``τ`` with breakpoints at
-    ``v_i`` and ``v_i − u_i``, so it is evaluated at the sorted breakpoints and interpolated.
+    such that the sum is 1 (the KKT conditions of the projection). The sum ``s(τ)`` falls
+    piecewise linearly with breakpoints at ``v_i`` and ``v_i − u_i``: a bisection over the
+    sorted positive breakpoints (``work``, ``2K`` long) finds the piece, and ``τ`` is
+    interpolated on it, exactly.
     """
     K = v.shape[0]
     s = 0.0
@@ -141,37 +166,36 @@ def _capped_simplex_row(v, u, out):
         s += out[i]
     if s <= 1.0:
         return
-    br = np.zeros(2 * K + 1)
-    n = 1
+    n = 0
     for i in range(K):
         if v[i] > 0.0:
-            br[n] = v[i]
-            n += 1
-        if np.isfinite(u[i]) and v[i] - u[i] > 0.0:
-            br[n] = v[i] - u[i]
-            n += 1
-    br = np.sort(br[:n])
-    ta, sa = 0.0, s  # s(0) > 1
-    for j in range(1, n):
-        tb = br[j]
-        sb = 0.0
-        for i in range(K):
-            sb += min(max(v[i] - tb, 0.0), u[i])
-        if sb <= 1.0:
-            tau = ta + (sa - 1.0) * (tb - ta) / (sa - sb) if sa > sb else tb
-            for i in range(K):
-                out[i] = min(max(v[i] - tau, 0.0), u[i])
-            return
-        ta, sa = tb, sb
+            n = _insert(work, n, v[i])
+        if v[i] - u[i] > 0.0:  # never for u = inf
+            n = _insert(work, n, v[i] - u[i])
+    lo, hi = -1, n - 1  # s(τ) > 1 at τ = 0 (lo = −1); s = 0 at the largest breakpoint, max v
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if _sum_at(v, u, work[mid]) > 1.0:
+            lo = mid
+        else:
+            hi = mid
+    ta = 0.0 if lo < 0 else work[lo]
+    sa = s if lo < 0 else _sum_at(v, u, ta)
+    tb = work[hi]
+    sb = _sum_at(v, u, tb)
+    tau = ta + (sa - 1.0) * (tb - ta) / (sa - sb) if sa > sb else tb
+    for i in range(K):
+        out[i] = min(max(v[i] - tau, 0.0), u[i])
 
 
 @_jit
 def project_rows(V, upper, convex, out):
     """``out ← Π_C(V)`` row by row, ``C = {0 ≤ w ≤ u (, Σ w ≤ 1)}``; ``V, out (T, K)``."""
     T, K = V.shape
+    work = np.empty(2 * K)
     for t in range(T):
         if convex:
-            _capped_simplex_row(V[t], upper, out[t])
+            _capped_simplex_row(V[t], upper, out[t], work)
         else:
             for k in range(K):
                 out[t, k] = min(max(V[t, k], 0.0), upper[k])
@@ -190,13 +214,14 @@ def admm_step(W, Z, U, C, rho, upper, alpha, convex):
     T, K = W.shape
     v = np.empty(K)
     z = np.empty(K)
+    work = np.empty(2 * K)
     dz = 0.0
     primal = 0.0
     for t in range(T):
         for k in range(K):
             v[k] = alpha * W[t, k] + (1.0 - alpha) * Z[t, k] + U[t, k]
         if convex:
-            _capped_simplex_row(v, upper, z)
+            _capped_simplex_row(v, upper, z, work)
         else:
             for k in range(K):
                 z[k] = min(max(v[k], 0.0), upper[k])
@@ -213,15 +238,14 @@ def admm_step(W, Z, U, C, rho, upper, alpha, convex):
 
 
 @_jit
-def point_multipliers(g, Z, upper, convex):
-    """Multipliers ``Y (T, K)`` read off a feasible ``Z (T, K)`` and ``g = c − P Z``.
+def point_multipliers(g, Z, upper, convex, Y):
+    """Multipliers ``Y (T, K)`` (filled in place) read off a feasible ``Z (T, K)`` and ``g = c − P Z``.
 
     A variable at 0 keeps ``min(g − ν, 0)``, at its bound ``max(g − ν, 0)``, a free one 0;
     with ``convex``, a full row (``Σ z ≥ 1 − 1e−12``) gets ``ν_t`` = the mean of ``g`` over
     its free variables (at least 0), added to every entry of the row.
     """
     T, K = Z.shape
-    Y = np.empty((T, K))
     for t in range(T):
         nu = 0.0
         if convex:
@@ -242,15 +266,15 @@ def point_multipliers(g, Z, upper, convex):
             else:
                 r = 0.0
             Y[t, k] = nu + r
-    return Y
 
 
 # --------------------------------------------------------------------------- faces
 
 
 @_jit
-def face_band(G, delta, mu, d0, d1, d2, free, sums, rho_s):
-    """Lower band ``(T·K, 2K + 1)`` of the face system, frame-major (row ``j = t·K + i``).
+def face_band(G, delta, mu, d0, d1, d2, free, sums, rho_s, band):
+    """Fill ``band``, zeros on entry, with the lower band ``(T·K, 2K + 1)`` of the face
+    system, frame-major (row ``j = t·K + i``).
 
     ``band[j, o] = M[j + o, j]``: free rows and columns hold ``P + ρ_s Σ_{active t} 1 1ᵀ``
     (``P = blockdiag(δ_t G) + μ LᵀL ⊗ I``, ``d0, d1, d2 (T,)`` the diagonals of ``LᵀL``),
@@ -258,7 +282,6 @@ def face_band(G, delta, mu, d0, d1, d2, free, sums, rho_s):
     ``o = 2K`` reach key ``i`` in frames ``t + 1`` and ``t + 2``; all others are zero.
     """
     T, K = free.shape
-    band = np.zeros((T * K, 2 * K + 1))
     for t in range(T):
         pen = rho_s if sums[t] else 0.0
         for i in range(K):
@@ -274,7 +297,6 @@ def face_band(G, delta, mu, d0, d1, d2, free, sums, rho_s):
                 band[j, K] = mu * d1[t]
             if t + 2 < T and free[t + 2, i]:
                 band[j, 2 * K] = mu * d2[t]
-    return band
 
 
 @_jit

@@ -89,8 +89,8 @@ class EigenSolver:
         self.lam, self.Q = np.linalg.eigh(seq.G)
         d0, d1, d2 = seq.gram
         a0 = seq.delta[:, None] * self.lam + np.reshape(rho, (-1, 1)) + seq.mu * d0[:, None]
-        self.factor = _kernels.penta_factor(a0, seq.mu * d1, seq.mu * d2)
-        if not np.isfinite(self.factor[0][0, 0]):
+        self.factor = tuple(np.empty_like(a0) for _ in range(3))
+        if not _kernels.penta_factor(a0, seq.mu * d1, seq.mu * d2, *self.factor):
             raise np.linalg.LinAlgError("pentadiagonal factorisation failed: not positive definite")
 
     def solve(self, R: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -138,7 +138,9 @@ def multipliers(seq: Sequence, Z: np.ndarray, state=None, nu=None, PZ=None) -> n
     """
     g = seq.C - (hessian_mul(seq, Z) if PZ is None else PZ)
     if state is None:  # read off the point (compiled: it runs on every certificate)
-        return _kernels.point_multipliers(g, np.ascontiguousarray(Z), seq.upper, seq.convex)
+        Y = np.empty_like(g)
+        _kernels.point_multipliers(g, np.ascontiguousarray(Z), seq.upper, seq.convex, Y)
+        return Y
     nu = np.zeros((len(Z), 1)) if nu is None else np.reshape(nu, (-1, 1))
     r = g - nu
     return nu + np.where(state == LOWER, np.minimum(r, 0.0), np.where(state == UPPER, np.maximum(r, 0.0), 0.0))

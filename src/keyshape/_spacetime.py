@@ -64,7 +64,7 @@ from ._nnls import Gram, cap_sum, nnls_gram
 from ._sequence import Best, EigenSolver, Sequence, multipliers, project
 from .exceptions import ConvergenceWarning
 
-_NEWTON_COST = 40  # ADMM iterations one active-set Newton step costs (measured at K = 12)
+_NEWTON_COST = 100  # ADMM iterations one active-set Newton step costs (measured at K = 12)
 _WARN_GAP = 1e-4  # degenerate problems (rank-deficient keys, extreme smoothing) may stop short of
 # the 1e-7 target; only a certified gap above this is reported as a ConvergenceWarning
 
@@ -150,7 +150,7 @@ def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, sw
         need = np.log(rtol / best.gap) / np.log(rate)
         if need > _NEWTON_COST and best.gap <= switch:
             break
-        rounds = int(np.clip(np.ceil(need) + 1, 2, 50))
+        rounds = int(np.clip(np.ceil(need) + 1, 2, _NEWTON_COST))
     state, sums = classify(seq, best.Z)
     history, limit = [], None
     for _ in range(max_newton):
