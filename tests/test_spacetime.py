@@ -168,8 +168,8 @@ def test_gap_penalty_follows_the_gap_length():
     rho = _spacetime.admm_rho(seq, lam)
     data = np.sqrt(lam[0] * (lam[-1] + 4 * seq.mu))
     assert rho[0] == pytest.approx(data) and rho[59] == pytest.approx(data)
-    assert rho[11] == pytest.approx(min(data, 2 * seq.mu * (np.pi / 6) ** 2))
-    assert rho[40] == pytest.approx(min(data, 2 * seq.mu * (np.pi / 18) ** 2))
+    assert rho[11] == pytest.approx(min(data, 4 * seq.mu * (np.pi / 6) ** 2))
+    assert rho[40] == pytest.approx(min(data, 4 * seq.mu * (np.pi / 18) ** 2))
     assert rho[40] < rho[11]
 
 

@@ -231,12 +231,13 @@ def _solve_region(A, B, upper, smoothness, convex, tol=1e-7):
     if smoothness == 0.0:
         return nnls_gram(G, B @ A, upper, convex)
     valid = np.isfinite(B).all(axis=1)
-    B = np.where(valid[:, None], B, 0.0)
+    C = B @ A  # rows with a NaN give NaN rows here, and are zeroed: no copy of B is made
+    C[~valid] = 0.0
     mu = smoothness * np.trace(G) / max(A.shape[1], 1)
     if mu == 0.0:  # all keys are zero: nothing to smooth
-        return np.where(valid[:, None], nnls_gram(G, B @ A, upper, convex), np.nan)
-    const = float(np.einsum("fm,fm->", B, B))
-    return spacetime_gram(G, B @ A, valid, const, mu, upper, convex, rtol=tol)
+        return np.where(valid[:, None], nnls_gram(G, C, upper, convex), np.nan)
+    const = float(np.einsum("fm,fm->f", B, B)[valid].sum())
+    return spacetime_gram(G, C, valid, const, mu, upper, convex, rtol=tol)
 
 
 # --------------------------------------------------------------------------- validation
