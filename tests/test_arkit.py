@@ -1,5 +1,4 @@
 import numpy as np
-import pytest
 
 from keyshape.cli import main
 from keyshape.io.livelink import read_livelink_csv

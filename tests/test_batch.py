@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import read_frames, write_video
 
 from keyshape.batch import (
     BatchRow,
@@ -28,6 +27,8 @@ from keyshape.batch import (
 )
 from keyshape.cli import main
 from keyshape.exceptions import InputError, MissingDependencyError
+
+from conftest import read_frames, write_video
 
 pytestmark = pytest.mark.slow
 

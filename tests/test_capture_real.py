@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import read_frames, write_video
 from keyshape.capture import track_video
 from keyshape.cli import main
 from keyshape.exceptions import NoFaceError
 from keyshape.filters import gap_report
 from keyshape.io.weights_csv import load_weights_csv
+
+from conftest import read_frames, write_video
 
 
 @pytest.mark.parametrize("clip", ["face_noface.mov", "noface_face.mov"])

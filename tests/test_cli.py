@@ -11,7 +11,7 @@ import pytest
 from keyshape.cli import main
 from keyshape.io.gltf import read_glb_animation
 from keyshape.io.keys_json import load_keys
-from keyshape.io.track import load_track, save_track
+from keyshape.io.track import load_track
 from keyshape.io.weights_csv import load_weights_csv
 from keyshape.rig import load_rig, save_obj_folder
 

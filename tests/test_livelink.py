@@ -8,8 +8,14 @@ from scipy.spatial.transform import Rotation
 
 from keyshape.containers import Poses, Weights
 from keyshape.exceptions import InputError, RigError
-from keyshape.io.livelink import (LIVELINK_NAMES, ROTATION_NAMES, livelink_columns, read_livelink_csv, timecode,
-                                  write_livelink_csv)
+from keyshape.io.livelink import (
+    LIVELINK_NAMES,
+    ROTATION_NAMES,
+    livelink_columns,
+    read_livelink_csv,
+    timecode,
+    write_livelink_csv,
+)
 
 ARKIT = [n[0].lower() + n[1:] for n in LIVELINK_NAMES]  # eyeBlinkLeft, ...
 

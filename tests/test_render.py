@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-import keyshape.render as render
+from keyshape import render
 from keyshape.align import align
 from keyshape.containers import Rig, Weights
 from keyshape.datasets import make_performance

@@ -142,7 +142,7 @@ def test_report_numbers_are_right(extras):
     track, keys = load_track(folder / "track.npz"), load_keys(folder / "keys.json")
     text = result.report.read_text(encoding="utf-8")
     embedded = json.loads(re.search(r'<script type="application/json" id="numbers">(.*?)</script>', text,
-                                    re.S).group(1))
+                                    re.DOTALL).group(1))
     assert embedded == result.numbers
     assert embedded["frames"] == track.n_frames == 40
     assert embedded["frames_with_face"] == int(track.valid.sum()) == 36

@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 from keyshape.exceptions import InputError
-from keyshape.schemes import (face_triangles, mediapipe_scheme, resolve_regions,
-                              stable_points)
+from keyshape.schemes import face_triangles, mediapipe_scheme, resolve_regions, stable_points
 
 
 def test_json_matches_mediapipe_connections():

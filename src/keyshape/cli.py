@@ -11,9 +11,9 @@ from importlib import resources
 from pathlib import Path
 
 from . import __version__
+from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from .commands import discover
 from .commands._argtypes import bound, non_negative, positive, whole
-from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from .exceptions import InputError, KeyshapeError
 
 DEMO_CLIP = "data/WolfgangLanger_Pexels.mp4"

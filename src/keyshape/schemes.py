@@ -28,7 +28,7 @@ REGION_SCHEMES = ("upper-lower", "whole", "eyes")
 
 _IBUG68 = {
     "contours": {
-        "jaw": list(range(0, 17)),
+        "jaw": list(range(17)),
         "right_eyebrow": list(range(17, 22)),
         "left_eyebrow": list(range(22, 27)),
         "nose": list(range(27, 36)),

@@ -17,8 +17,16 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 
-from ._gltf_nodes import (as_trs, continuous_hemisphere, find_eyes, find_head, head_local_rotations,
-                          local_matrix, parents, world_rotation)
+from ._gltf_nodes import (
+    as_trs,
+    continuous_hemisphere,
+    find_eyes,
+    find_head,
+    head_local_rotations,
+    local_matrix,
+    parents,
+    world_rotation,
+)
 from ._gltf_read import COMPONENT_DTYPES, read_uri
 
 __all__ = ["Blob", "SPARSE_BELOW", "component_type", "json_number", "pack", "root_skinned_meshes",

@@ -40,12 +40,33 @@ import pygltflib
 from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, RigError
 from . import _gltf_edit as edit
-from ._gltf_anim import (_IMAGE_TO_GLTF, _add_node_rotation, _add_rotation, _animation, _check_eyes,
-                         _check_names, _check_poses, _fill_invalid, _mesh_weights, _pose_quaternions,
-                         _times, _weights_output, head_rotations)
+from ._gltf_anim import (
+    _IMAGE_TO_GLTF,
+    _add_node_rotation,
+    _add_rotation,
+    _animation,
+    _check_eyes,
+    _check_names,
+    _check_poses,
+    _fill_invalid,
+    _mesh_weights,
+    _pose_quaternions,
+    _times,
+    _weights_output,
+    head_rotations,
+)
 from ._gltf_nodes import find_eyes, find_head
-from ._gltf_read import (ANIMATION_NAMES, GlbAnimation, Part, load_document, morph_meshes,
-                         read_glb_animation, read_parts, read_rig, target_names)
+from ._gltf_read import (
+    ANIMATION_NAMES,
+    GlbAnimation,
+    Part,
+    load_document,
+    morph_meshes,
+    read_glb_animation,
+    read_parts,
+    read_rig,
+    target_names,
+)
 from .atomic import atomic_path
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",

@@ -30,8 +30,7 @@ import numpy as np
 from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, RigError
 from ._pxr import pxr as _pxr
-from ._usd_read import (ANIMATION, UsdAnimation, _open, check_usd, deformed_points, read_rig,
-                        read_usd_animation)
+from ._usd_read import ANIMATION, UsdAnimation, _open, check_usd, deformed_points, read_rig, read_usd_animation
 from .atomic import atomic_path
 
 __all__ = ["write_usd", "animate_usd", "read_rig", "read_usd_animation", "deformed_points", "check_usd",

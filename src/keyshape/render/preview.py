@@ -23,8 +23,7 @@ from ..io.atomic import atomic_path
 from ..schemes import mediapipe_scheme
 from . import make_renderer
 from .camera import frame_points
-from .draw import (OTHER_COLOUR, WeightStrip, caption, draw_landmarks, landmark_colours, region_palette,
-                   resize_to_height)
+from .draw import OTHER_COLOUR, WeightStrip, caption, draw_landmarks, landmark_colours, region_palette, resize_to_height
 from .encode import VideoWriter
 
 __all__ = ["render_preview", "head_rotations", "rotations_from_quaternions"]
@@ -100,15 +99,17 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     strip = WeightStrip(weights.names, _channel_colours(weights.names, keys), width, _even(strip_height))
     overlay = _LandmarkOverlay(track, keys, scale=first.shape[0] / source_height)
     canvas = np.zeros((height + strip.height, width, 3), np.uint8)
-    with atomic_path(path) as tmp:
-        with _CharacterView(rig, driving, rotations, height, backend) as character, \
-                VideoWriter(tmp, width, height + strip.height, track.fps) as out:
-            frames = _with_first(first, sources)
-            for index, source in _progress(enumerate(frames), track.n_frames, progress):
-                canvas[:height, :split] = overlay(source, index)
-                canvas[:height, split:] = character(index)
-                canvas[height:] = strip.draw(weights.values[index])
-                out.write(canvas)
+    with (
+        atomic_path(path) as tmp,
+        _CharacterView(rig, driving, rotations, height, backend) as character,
+        VideoWriter(tmp, width, height + strip.height, track.fps) as out,
+    ):
+        frames = _with_first(first, sources)
+        for index, source in _progress(enumerate(frames), track.n_frames, progress):
+            canvas[:height, :split] = overlay(source, index)
+            canvas[:height, split:] = character(index)
+            canvas[height:] = strip.draw(weights.values[index])
+            out.write(canvas)
     return Path(path)
 
 
