@@ -19,6 +19,9 @@ Kernels
   face of the QP (block pentadiagonal, bandwidth ``2K``) that skips fixed variables: their rows
   and columns are the identity, so only free variables cost anything.
 
+The per-frame solver's kernel (block principal pivoting) is in :mod:`keyshape._kernels_nnls`,
+compiled with this module's decorator.
+
 References
 ----------
 Golub, G. H. & Van Loan, C. F. (2013). *Matrix Computations*, 4th ed., §4.3. Johns Hopkins.

@@ -8,16 +8,16 @@ Every frame ``t`` solves the strictly convex quadratic programme
     \\quad\\text{s.t.}\\quad 0 \\le w \\le u, \\;\\; (\\mathbf 1^T w \\le 1),
 
 which is ``min ‖A w − b_t‖²`` written with ``G = AᵀA`` and ``c_t = Aᵀ b_t`` (Bro & de Jong 1997
-precompute the same cross products). ``G`` is shared by all frames, so everything runs for all
-frames in lockstep:
+precompute the same cross products). ``G`` is shared by all frames:
 
 1. *Block principal pivoting* (Júdice & Pires 1994; Kim & Park 2011), started from the signs of
-   the unconstrained solution. Each sweep classifies every variable of every frame as at its
-   lower bound, free, or at its upper bound, solves all the resulting reduced systems at once
-   (:func:`free_solve`) and exchanges every variable that breaks a KKT condition. Frames leave
-   the batch as soon as they satisfy the KKT conditions; most need two or three sweeps.
+   the unconstrained solution. Each sweep classifies every variable of a frame as at its
+   lower bound, free, or at its upper bound, solves the reduced system by Cholesky and
+   exchanges every variable that breaks a KKT condition; most frames need two or three
+   sweeps. This loop is compiled and runs frame by frame
+   (:func:`keyshape._kernels_nnls.block_pivoting`): the systems are at most ``K × K``.
 2. Frames on which the block exchanges stop making progress (Kim & Park's trigger for their
-   backup rule) finish with the *primal active-set method* (Lawson & Hanson 1974, ch. 23,
+   backup rule) finish, batched, with the *primal active-set method* (Lawson & Hanson 1974, ch. 23,
    generalised to two-sided bounds as in Nocedal & Wright 2006, Alg. 16.3): monotone in the
    objective, hence safe on ill-conditioned frames where rounding could make exchanges cycle.
 3. The optional constraint ``Σ w ≤ 1`` is handled through its multiplier ``ν ≥ 0``: the box
@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from . import _kernels_nnls
 from .exceptions import ConvergenceWarning
 
 LOWER, FREE, UPPER = 0, 1, 2
@@ -248,50 +249,13 @@ def box_solve(gram: Gram, C: np.ndarray, upper: np.ndarray, state: np.ndarray):
     X : (n, K) float, the solutions, within ``[0, u]``
     state : (n, K) int8, their classification
     """
-    X, state, stalled = _block_pivoting(gram, C, upper, state.astype(np.int8))
+    state = np.array(state, dtype=np.int8, order="C")
+    X = np.empty(C.shape)
+    bounded = bool(np.isfinite(upper).any())
+    stalled = np.flatnonzero(_kernels_nnls.block_pivoting(gram.G, np.ascontiguousarray(C), upper, bounded, state, X))
     if len(stalled):
         X[stalled], state[stalled] = _active_set(gram, C[stalled], upper, X[stalled], state[stalled])
     return np.clip(X, 0.0, upper), state
-
-
-def _block_pivoting(gram, C, upper, state, max_sweeps=None):
-    """Kim & Park's block principal pivoting; returns ``X, state`` and the stalled rows."""
-    n, k = C.shape
-    X, state = np.empty((n, k)), state.copy()
-    todo = np.arange(n)
-    c_max, g_max = np.abs(C).max(axis=1, keepdims=True), np.abs(gram.G).max()
-    best, budget = np.full(n, k + 1), np.full(n, 3)
-    bounded = bool(np.isfinite(upper).any())
-    for _ in range(max_sweeps or 2 * k + 10):
-        every = len(todo) == n
-        c, s = (C, state) if every else (C[todo], state[todo])
-        x, y = _evaluate(gram, c, upper, s)
-        bad = _violations(x, y, s, upper if bounded else None, c_max if every else c_max[todo], g_max)
-        n_bad = bad.sum(axis=1)
-        # Kim & Park: exchange everything while the infeasible count falls (or for 3 sweeps)
-        improved = n_bad < best[todo]
-        best[todo] = np.where(improved, n_bad, best[todo])
-        budget[todo] = np.where(improved, 3, budget[todo] - 1)
-        keep = (n_bad > 0) & (budget[todo] >= 0)
-        X[todo[~keep]] = x[~keep]  # solved, or stalled (the active-set finish starts there)
-        todo, x, bad, s = todo[keep], x[keep], bad[keep], s[keep]
-        if not len(todo):
-            break
-        to_bound = np.where(x < 0, LOWER, UPPER)
-        state[todo] = np.where(bad, np.where(s == FREE, to_bound, FREE), s)
-    X[todo] = x
-    return X, state, np.union1d(np.flatnonzero(budget < 0), todo)
-
-
-def _violations(x, y, s, upper, c_max, g_max):
-    """(n, K) bool: KKT tests failed beyond ``_TOL`` of the row's scale (``upper`` None: none)."""
-    scale = 1.0 + np.abs(x).max(axis=1, keepdims=True)
-    tol_x, tol_y = _TOL * scale, _TOL * (c_max + g_max * scale)
-    free = s == FREE
-    if upper is None:  # plain NNLS: free and negative, or at 0 with a negative gradient
-        return np.where(free, x < -tol_x, y < -tol_y)
-    out = (x < -tol_x) | (x > upper + tol_x)
-    return np.where(free, out, np.where(s == LOWER, y < -tol_y, y > tol_y))
 
 
 def _active_set(gram, C, upper, X, state, max_iter=None):
