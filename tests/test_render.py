@@ -64,7 +64,8 @@ def make_take_folder(folder: Path, *, with_video: bool = True, **options) -> Pat
     video = folder / "take.mp4"
     if with_video:
         ramp = np.linspace(40, 200, 640).astype(np.uint8)
-        frames = np.stack([np.dstack([np.tile(np.roll(ramp, 7 * i), (480, 1))] * 3) for i in range(perf.track.n_frames)])
+        frames = np.stack([np.dstack([np.tile(np.roll(ramp, 7 * i), (480, 1))] * 3)
+                           for i in range(perf.track.n_frames)])
         write_video(video, frames, fps=25)
     save_track(perf.track, folder / "track.npz")
     save_keys(keys, folder / "keys.json")

@@ -302,4 +302,4 @@ Units and axes: glTF metres, +Y up, the character facing +Z. The neutral frame i
 | name | region | frame | time (s) |
 |---|---|---|---|
 {table}
-""".replace("{glb}", GLB).replace("{sheet}", SHEET)
+""".replace("{glb}", GLB).replace("{sheet}", SHEET)  # noqa: E501 - markdown table rows cannot wrap

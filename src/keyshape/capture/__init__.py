@@ -210,7 +210,8 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
     from ..io.track import write_track_arrays
 
     output = Path(output)
-    with tempfile.TemporaryDirectory(prefix="keyshape-track-", dir=output.parent if output.parent.exists() else None) as tmp:
+    spool_dir = output.parent if output.parent.exists() else None
+    with tempfile.TemporaryDirectory(prefix="keyshape-track-", dir=spool_dir) as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
                              progress=progress, folder=Path(tmp), one_euro=one_euro)
         arrays = spool.arrays()

@@ -68,7 +68,8 @@ def find_eyes(document: pygltflib.GLTF2, head: int | None, *, names: tuple[str, 
     if names is not None:
         found = [next((i for i, n in enumerate(document.nodes) if n.name == name), None) for name in names]
         if None in found:
-            raise RigError(f"no eye nodes named {list(names)}; nodes: {sorted({n.name for n in document.nodes if n.name})[:40]}")
+            named = sorted({n.name for n in document.nodes if n.name})
+            raise RigError(f"no eye nodes named {list(names)}; nodes: {named[:40]}")
         return found[0], found[1]
     pool = _descendants(document, head) if head is not None else range(len(document.nodes))
     joints = {j for skin in document.skins for j in skin.joints}
