@@ -254,7 +254,7 @@ def test_primitives_sharing_a_vertex_buffer_share_rig_vertices(rig, weights, tmp
     loaded = load_rig(path)
     assert loaded.n_vertices == rig.n_vertices  # not duplicated
     np.testing.assert_array_equal(np.sort(loaded.faces, axis=0), np.sort(rig.faces, axis=0))
-    rig_, parts = gltf_io.read_meshes(path)
+    _, parts = gltf_io.read_meshes(path)
     assert [(p.mesh, p.primitive, p.start, p.count) for p in parts] == [(0, 0, 0, 25), (0, 1, 0, 25)]
 
 

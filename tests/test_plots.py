@@ -16,7 +16,7 @@ from test_render import synthetic_take
 
 @pytest.fixture(scope="module")
 def take():
-    perf, keys, weights, poses, rig = synthetic_take(n_frames=60, n_missing=4)
+    perf, keys, weights, _, _ = synthetic_take(n_frames=60, n_missing=4)
     aligned, _ = align(perf.track, reference=keys.neutral, stable=perf.stable)
     return perf, keys, weights, aligned
 
@@ -28,7 +28,7 @@ def read_png(path) -> np.ndarray:
 
 
 def test_contact_sheet_shows_every_key_and_the_neutral(take, tmp_path):
-    perf, keys, weights, _ = take
+    perf, keys, _, _ = take
     images = {int(f): np.full((480, 640, 3), 90, np.uint8) for f in [keys.neutral_frame, *keys.frames]}
     path = plots.contact_sheet(keys, perf.track, images, tmp_path / "sheet.png", columns=3)
     picture = read_png(path)
@@ -51,7 +51,7 @@ def test_contact_sheet_without_video_draws_the_landmarks(take, tmp_path):
 
 
 def test_weight_curves_png(take, tmp_path):
-    perf, keys, weights, aligned = take
+    _, keys, weights, aligned = take
     fit = fit_quality(aligned, keys, weights)
     picture = read_png(plots.weight_curves(weights, keys, fit, tmp_path / "w.png"))
     assert picture.shape == (2 * 200 + 260, 1200, 3)

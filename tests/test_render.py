@@ -268,7 +268,7 @@ def test_preview_without_video_and_with_the_numpy_backend(tmp_path):
 def test_preview_rejects_mismatched_inputs(tmp_path):
     from keyshape.render.preview import render_preview
 
-    perf, keys, weights, poses, rig = synthetic_take(n_frames=12, n_missing=0)
+    perf, _, weights, _, rig = synthetic_take(n_frames=12, n_missing=0)
     short = Weights(weights.values[:5], weights.names, weights.fps)
     with pytest.raises(InputError, match="weights have 5 frames"):
         render_preview(perf.track, short, rig, tmp_path / "p.mp4")

@@ -154,7 +154,7 @@ def test_round_trip_on_the_robot(take, tmp_path):
     named = [m.extras.get("targetNames") for m in document.meshes if m.extras and m.extras.get("targetNames")]
     assert named == [list(keys.names)] * 3  # the three head primitives; Angry/Surprised/Sad replaced
     assert len(document.animations) == 14 and len(document.skins) == 4
-    blank, parts = read_meshes(kit.glb)
+    blank, _ = read_meshes(kit.glb)
     sculpted_rig = _artist(blank, seed=2)
     sculpted = write_gltf_targets(kit.glb, tmp_path / "robot_sculpted.glb", sculpted_rig)
     weights = _key_weights(keys)

@@ -40,13 +40,13 @@ class UsdAnimation(NamedTuple):
 
 
 def _open(path):
-    _, _, _, Usd, _, _, _, _ = _pxr()
+    _, _, Tf, Usd, _, _, _, _ = _pxr()
     path = Path(path)
     if not path.is_file():
         raise InputError(f"no such USD file: {str(path)!r}")
     try:
         stage = Usd.Stage.Open(str(path))
-    except Exception as error:  # pxr raises Tf.ErrorException
+    except Tf.ErrorException as error:
         raise InputError(f"cannot read {str(path)!r} as USD: {str(error).strip().splitlines()[-1]}") from None
     if stage is None:
         raise InputError(f"cannot read {str(path)!r} as USD")
@@ -77,7 +77,7 @@ def read_rig(path) -> Rig:
     MissingDependencyError
         Without ``usd-core``.
     """
-    _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
+    _, _, _, _, UsdGeom, UsdSkel, _, _ = _pxr()
     stage = _open(path)
     parts = [_read_mesh(prim) for prim in stage.Traverse()
              if prim.IsA(UsdGeom.Mesh) and prim.HasAPI(UsdSkel.BindingAPI)]
@@ -163,7 +163,7 @@ def read_usd_animation(path) -> UsdAnimation:
     InputError
         If the file has no SkelAnimation with blend-shape weights.
     """
-    _, _, _, Usd, _, UsdSkel, _, _ = _pxr()
+    _, _, _, _, _, UsdSkel, _, _ = _pxr()
     stage = _open(path)
     animations = [UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation)]
     ours = [a for a in animations if a.GetPrim().GetName() in ("keyshape", ANIMATION)]
@@ -192,7 +192,7 @@ def deformed_points(path, frame: int) -> np.ndarray:
     Blend shapes only (``UsdSkel.BlendShapeQuery``, weights from the bound SkelAnimation);
     skinning and unit conversion are not applied. For checking written files.
     """
-    _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
+    _, _, _, Usd, _, UsdSkel, _, _ = _pxr()
     stage = _open(path)
     cache = UsdSkel.Cache()
     for root in (p for p in stage.Traverse() if p.IsA(UsdSkel.Root)):
@@ -205,7 +205,7 @@ def deformed_points(path, frame: int) -> np.ndarray:
 
 
 def _blend_target(target, query, frame: int) -> np.ndarray:
-    _, _, _, Usd, UsdGeom, UsdSkel, _, Vt = _pxr()
+    _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
     prim = target.GetPrim()
     shapes = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(prim))
     weights = query.GetAnimQuery().ComputeBlendShapeWeights(Usd.TimeCode(frame))
@@ -234,7 +234,7 @@ def check_usd(path) -> list[str]:
     list of str
         Errors, warnings and failed checks; empty when the file is clean.
     """
-    _, _, _, Usd, _, _, UsdUtils, _ = _pxr()
+    _, _, _, _, _, _, UsdUtils, _ = _pxr()
     problems = _validation_errors(path)
     checker_class = getattr(UsdUtils, "ComplianceChecker", None)
     if checker_class is not None:  # removed from recent usd-core in favour of UsdValidation

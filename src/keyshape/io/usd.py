@@ -99,7 +99,7 @@ def _export(stage, tmp: Path) -> None:
 
 
 def _build_stage(rig: Rig, weights: Weights, quats: np.ndarray | None):
-    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, UsdUtils, Vt = _pxr()
+    _, _, _, Usd, _, UsdSkel, _, _ = _pxr()
     stage = Usd.Stage.CreateInMemory()
     _set_metadata(stage, weights)
     root = UsdSkel.Root.Define(stage, ROOT)
@@ -236,7 +236,7 @@ def animate_usd(source, weights: Weights, path, *, poses: Poses | None = None) -
     """
     from ._gltf_anim import _check_poses, head_rotations
 
-    _, Sdf, _, Usd, _, _, _, _ = _pxr()
+    _, _, _, Usd, _, _, _, _ = _pxr()
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
         raise InputError(f"USD output must end in one of {USD_SUFFIXES}; got {str(path)!r}")
@@ -312,7 +312,7 @@ def _add_animation(stage, skeleton, channels, weights: Weights, world, source) -
 
 
 def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, world, source) -> None:
-    Gf, _, _, Usd, _, UsdSkel, _, Vt = _pxr()
+    Gf, _, _, Usd, _, _, _, Vt = _pxr()
     attribute = animation.CreateRotationsAttr()
     if world is None:
         attribute.Set(rotations)

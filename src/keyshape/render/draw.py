@@ -139,7 +139,7 @@ def _text_patch(text: str, size: int) -> np.ndarray:
     """(h, w, 3) uint8: ``text`` in white on black with a 4 × 3 pixel margin."""
     image_mod, image_draw, _ = _pil()
     font = _font(size)
-    left, top, right, bottom = image_draw.Draw(image_mod.new("RGB", (1, 1))).textbbox((0, 0), text, font=font)
+    _, _, right, bottom = image_draw.Draw(image_mod.new("RGB", (1, 1))).textbbox((0, 0), text, font=font)
     canvas = image_mod.new("RGB", (right + 8, bottom + 6), (0, 0, 0))
     image_draw.Draw(canvas).text((4, 3), text, fill=(255, 255, 255), font=font)
     return np.asarray(canvas)
