@@ -93,8 +93,8 @@ def main() -> None:
     if args.child:
         print(json.dumps(one_mode(args.child, args.takes_dir, args.out, args.workers)))
         return
-    with tempfile.TemporaryDirectory(prefix="bench-batch-") as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory(prefix="bench-batch-") as folder:
+        tmp = Path(folder)
         (tmp / "takes").mkdir()
         make_takes(tmp / "takes", args.takes)
         results = {mode: run_child(mode, tmp / "takes", tmp / mode, args.workers)

@@ -142,10 +142,10 @@ def iter_frames(path: str | Path, *, start: int = 0, end: int | None = None,
     path = Path(path)
     source = _decode_folder(path, fps) if path.is_dir() else _decode_video(path, fps)
     last = -1
-    for index, (ms, rgb) in enumerate(source):
+    for index, (stamp, rgb) in enumerate(source):
         if end is not None and index >= end:
             break
-        ms = max(ms, last + 1)
+        ms = max(stamp, last + 1)
         last = ms
         if index >= start:
             yield ms, rgb
@@ -169,7 +169,7 @@ def prefetch(frames: Iterable, *, depth: int = 8) -> Iterator:
                     return
                 items.put(item)
             items.put(_DONE)
-        except BaseException as exc:  # handed to the consumer
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer thread, which re-raises it
             items.put(exc)
 
     worker = threading.Thread(target=produce, daemon=True, name="keyshape-decode")
