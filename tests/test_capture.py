@@ -31,14 +31,14 @@ def test_real_clip_moves(real_track):
 
 
 def test_video_without_face(faceless_video):
-    with pytest.raises(NoFaceError, match="noise.mp4: no face found in any of its 10 frames"):
+    with pytest.raises(NoFaceError, match=r"noise\.mp4: no face found in any of its 10 frames"):
         track_video(faceless_video, progress=False)
 
 
 def test_missing_and_non_video_files(tmp_path):
-    with pytest.raises(InputError, match="nope.mp4: file not found"):
+    with pytest.raises(InputError, match=r"nope\.mp4: file not found"):
         probe(tmp_path / "nope.mp4")
     fake = tmp_path / "fake.mp4"
     fake.write_text("this is not a video\n" * 20)
-    with pytest.raises(InputError, match="fake.mp4: not a video"):
+    with pytest.raises(InputError, match=r"fake\.mp4: not a video"):
         track_video(fake, progress=False)

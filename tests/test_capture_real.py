@@ -37,7 +37,7 @@ def test_face_leaving_and_entering(clips, tmp_path, clip):
 
 
 def test_no_face_at_all(clips):
-    with pytest.raises(NoFaceError, match="no_face.mp4: no face found"):
+    with pytest.raises(NoFaceError, match=r"no_face\.mp4: no face found"):
         track_video(clips / "no_face.mp4", progress=False)
 
 

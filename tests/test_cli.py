@@ -22,7 +22,7 @@ VERBS = ["track", "keys", "solve", "retarget", "run", "demo"]
 
 def _cli(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "keyshape", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, timeout=600)
+                          text=True, cwd=cwd, timeout=600, check=False)  # callers check the exit code
 
 
 def test_help_explains_every_verb():
@@ -102,7 +102,7 @@ def test_neutral_option(demo_out, tmp_path):
 
 def _assert_clean_failure(result, out_path, *needles):
     assert result.returncode == 1, result.stderr
-    lines = [l for l in result.stderr.splitlines() if l.strip()]
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, result.stderr
     assert "Traceback" not in result.stderr
     for needle in needles:
@@ -183,7 +183,7 @@ def test_count_auto_reaches_the_target(demo_out, tmp_path, capsys):
     keys_path = tmp_path / "auto.json"
     assert main(["keys", str(demo_out / "track.npz"), "-o", str(keys_path), "--count", "auto",
                  "--max-error", "1.5"]) == 0
-    line = [l for l in capsys.readouterr().out.splitlines() if l.startswith("fit:")][0]
+    line = next(text for text in capsys.readouterr().out.splitlines() if text.startswith("fit:"))
     import re
 
     found = re.findall(r"(\w+): K = (\d+), RMS error ([\d.]+)", line)

@@ -10,8 +10,8 @@ from keyshape.io.track import load_track, save_track
 from keyshape.io.weights_csv import load_weights_csv, save_weights_csv
 
 
-def _track(n=5, l=4, d=3):
-    pts = np.random.default_rng(1).normal(size=(n, l, d)) * 100
+def _track(n=5, n_landmarks=4, d=3):
+    pts = np.random.default_rng(1).normal(size=(n, n_landmarks, d)) * 100
     pts[2] = np.nan
     return Track(pts, 23.976, (640, 360), np.random.default_rng(2).random((n, 52)),
                  tuple(f"s{i}" for i in range(52)), np.tile(np.eye(4), (n, 1, 1)))
@@ -44,7 +44,7 @@ def test_bad_track_files(tmp_path, arrays, message):
 
 def test_not_an_npz(tmp_path):
     (tmp_path / "x.npz").write_text("hello")
-    with pytest.raises(InputError, match="x.npz: not a readable .npz"):
+    with pytest.raises(InputError, match=r"x\.npz: not a readable \.npz"):
         load_track(tmp_path / "x.npz")
 
 
@@ -109,7 +109,7 @@ def test_landmark_csv_3d_and_bad_header(tmp_path):
     assert load_track(path, fps=50).n_dims == 3 and load_track(path, fps=50).fps == 50
     bad = tmp_path / "bad.csv"
     bad.write_text("frame,a,b\n0,1,2\n")
-    with pytest.raises(InputError, match="bad.csv: landmark columns must be x0,y0"):
+    with pytest.raises(InputError, match=r"bad\.csv: landmark columns must be x0,y0"):
         load_track(bad)
 
 

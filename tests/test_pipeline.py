@@ -1,5 +1,7 @@
 """The method end to end on synthetic takes with known answers, and several takes at once."""
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
@@ -48,7 +50,7 @@ def test_single_take_recovers_the_truth(perf):
 
 def _split(track: Track, cuts) -> list[Track]:
     bounds = [0, *cuts, track.n_frames]
-    return [Track(track.points[a:b], track.fps) for a, b in zip(bounds[:-1], bounds[1:])]
+    return [Track(track.points[a:b], track.fps) for a, b in pairwise(bounds)]
 
 
 def test_one_key_set_across_takes(perf):
@@ -64,13 +66,13 @@ def test_one_key_set_across_takes(perf):
     assert sorted(_pure(perf, global_frames, keys.key_regions)) == [0, 1, 2, 3]
     assert len(set(keys.takes)) > 1  # the key frames come from several takes
     assert keys.neutral_take == "a.npz" and keys.neutral_frame == perf.neutral_frame
-    for name, take in zip(names, takes):  # every take solves against the shared key set
+    for take in takes:  # every take solves against the shared key set
         assert _fits(solve_take(take, keys), keys)
 
 
 def test_takes_must_share_a_landmark_scheme(perf):
     other = Track(perf.track.points[:, :30], perf.track.fps)
-    with pytest.raises(ValueError, match="b.npz: has 30 landmarks"):
+    with pytest.raises(ValueError, match=r"b\.npz: has 30 landmarks"):
         discover_keys([perf.track, other], regions="whole", take=["a.npz", "b.npz"])
 
 

@@ -48,7 +48,7 @@ def test_regions_file(tmp_path):
     path.write_text(json.dumps({"a": [0, 1, 2], "b": [3, 4]}))
     regions = resolve_regions(path, 5)
     assert regions["b"].tolist() == [3, 4]
-    with pytest.raises(InputError, match="indices must be in 0..3"):
+    with pytest.raises(InputError, match=r"indices must be in 0\.\.3"):
         resolve_regions(path, 4)
 
 

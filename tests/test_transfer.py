@@ -199,7 +199,10 @@ def test_separate_parts_stay_still_and_listed_parts_move_rigidly():
     moved = transfer_expressions(keys, mesh, tri, corr, rigid=[patch])
     before = mesh[patch]
     after = before + moved[0, patch]
-    pairwise = lambda p: np.linalg.norm(p[:, None] - p[None], axis=2)
+
+    def pairwise(p):
+        return np.linalg.norm(p[:, None] - p[None], axis=2)
+
     np.testing.assert_allclose(pairwise(after), pairwise(before), atol=1e-12)
     assert np.linalg.norm(moved[0, patch].mean(axis=0)) > 0.001  # and it moved with the skin
 

@@ -141,13 +141,13 @@ def test_load_take(small_take):
 
 
 def test_load_take_errors(tmp_path, small_take):
-    with pytest.raises(InputError, match="no take.json"):
+    with pytest.raises(InputError, match=r"no take\.json"):
         load_take(tmp_path)
     folder = tmp_path / "take"
     folder.mkdir()
     info = json.loads((small_take / "take.json").read_text())
     (folder / "take.json").write_text(json.dumps(info))
-    with pytest.raises(InputError, match="no animation.glb here"):
+    with pytest.raises(InputError, match=r"no animation\.glb here"):
         load_take(folder)
     (folder / "animation.glb").write_bytes((small_take / "animation.glb").read_bytes())
     (folder / "take.json").write_text(json.dumps({**info, "fps": 0}))

@@ -370,7 +370,10 @@ def _eyeball(vertices: np.ndarray, side: str, *, n_lat: int = 16, n_lon: int = 2
     bump = 1.0 + 0.06 * (np.arccos(np.clip(unit[:, 2], -1, 1)) < np.radians(24))
     points = centre + radius * bump[:, None] * unit
     faces = []
-    ring = lambda i: 1 + i * n_lon + np.arange(n_lon)
+
+    def ring(i):
+        return 1 + i * n_lon + np.arange(n_lon)
+
     faces.append(np.stack([np.zeros(n_lon, int), ring(0), np.roll(ring(0), -1)], axis=1))
     for i in range(n_lat - 2):
         a, b = ring(i), ring(i + 1)
