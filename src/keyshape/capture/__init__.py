@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 
@@ -125,7 +127,8 @@ class _Spool:
 
     def __init__(self, folder: Path):
         self.folder = folder
-        self.files = {name: open(folder / f"{name}.f32", "wb") for name in ("points", "scores", "matrix")}
+        self.files = {}
+        self._open = ExitStack()
         self.n_frames = 0
         self.n_faces = 0
 
@@ -135,12 +138,15 @@ class _Spool:
         self.n_frames += 1
         self.n_faces += bool(np.isfinite(frame.points[0, 0]))
 
-    def __enter__(self) -> _Spool:
+    def __enter__(self) -> Self:
+        with ExitStack() as stack:  # a failed open closes the ones before it
+            self.files = {name: stack.enter_context(open(self.folder / f"{name}.f32", "wb"))
+                          for name in ("points", "scores", "matrix")}
+            self._open = stack.pop_all()
         return self
 
     def __exit__(self, *exc) -> None:
-        for fh in self.files.values():
-            fh.close()
+        self._open.close()
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Memory maps of what was written (call after the ``with`` block)."""

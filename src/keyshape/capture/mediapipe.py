@@ -12,6 +12,7 @@ import sys
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 
@@ -78,7 +79,7 @@ class MediaPipeTracker:
         self._landmarker = None
         self.blendshape_names: tuple[str, ...] = ()
 
-    def __enter__(self) -> MediaPipeTracker:
+    def __enter__(self) -> Self:
         os.environ.setdefault("GLOG_minloglevel", "2")
         os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
         try:
