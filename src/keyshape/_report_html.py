@@ -59,10 +59,11 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in notes or []]
     parts += ["<h2>Numbers</h2>", _numbers_table(numbers), _regions_table(numbers)]
     if video:
-        parts += ["<h2>Preview</h2>", f'<video controls loop muted preload="metadata" src="{html.escape(video)}">'
-                  "</video>", '<p class="note">Left: the source video with the tracked landmarks (one colour '
-                  "per region). Right: the character driven by the same weights and head rotation. "
-                  "Bottom: the current key-shape weights.</p>"]
+        parts += ["<h2>Preview</h2>",
+                  f'<video controls loop muted preload="metadata" src="{html.escape(video)}"></video>',
+                  ('<p class="note">Left: the source video with the tracked landmarks (one colour '
+                   "per region). Right: the character driven by the same weights and head rotation. "
+                   "Bottom: the current key-shape weights.</p>")]
     for caption_text, png in images.items():
         parts += [f"<h2>{html.escape(caption_text)}</h2>",
                   f'<img alt="{html.escape(caption_text)}" src="{_data_uri(png, "image/png")}">']

@@ -118,10 +118,7 @@ def _umeyama(src: np.ndarray, dst: np.ndarray, *, scale: bool):
     rotations = np.einsum("fij,fj,fjk->fik", u, s_diag, vt)  # Eq. (40): R = U S Vᵀ
     var_src = (src_c**2).sum(axis=(1, 2)) / src.shape[1]  # Eq. (36): σ²_x
     good = (sv[:, max(d - 2, 0)] > 1e-12 * np.maximum(sv[:, 0], 1e-300)) & (var_src > 0)
-    if scale:
-        scales = (sv * s_diag).sum(axis=1) / np.where(good, var_src, 1.0)  # Eq. (42)
-    else:
-        scales = np.ones(len(src))
+    scales = (sv * s_diag).sum(axis=1) / np.where(good, var_src, 1.0) if scale else np.ones(len(src))  # Eq. (42)
     # Eq. (41): t = μ_y - s R μ_x.
     translations = mu_dst - scales[:, None] * np.einsum("fij,fj->fi", rotations, mu_src)
     return rotations, translations, scales, good

@@ -38,8 +38,7 @@ from pathlib import Path
 import numpy as np
 from scipy import sparse
 
-from ._surface import mesh_components, snap_to_surface
-from ._surface import weld_vertices as weld_vertices  # re-exported for keyshape.transfer and others
+from ._surface import mesh_components, snap_to_surface, weld_vertices
 from .exceptions import InputError, RigError
 
 __all__ = [
@@ -48,6 +47,7 @@ __all__ = [
     "mesh_components",
     "read_correspondence",
     "snap_to_surface",
+    "weld_vertices",
 ]
 
 FORMAT = "keyshape-correspondence"

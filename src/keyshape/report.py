@@ -72,8 +72,8 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
     fit = fit_quality(take.aligned, take.keys, take.weights, tolerance=tolerance)
     numbers = take_numbers(take.track, take.keys, fit)
     pictures = _pictures(outdir, take, fit, k_table)
-    notes = [] if take.video is not None else [f"The source video {take.info.get('video')!r} was not found: "
-                                               "landmarks are drawn on a blank background."]
+    notes = [] if take.video is not None else [(f"The source video {take.info.get('video')!r} was not found: "
+                                                "landmarks are drawn on a blank background.")]
     movie = _preview(outdir, take, progress=progress, backend=backend) if preview else None
     if not preview and (outdir / "preview.mp4").is_file():
         movie = outdir / "preview.mp4"  # from an earlier run

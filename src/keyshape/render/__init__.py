@@ -82,7 +82,7 @@ def make_renderer(faces: np.ndarray, width: int, height: int, *, n_vertices: int
 
 
 def _warn_fallback(exc: Exception) -> None:
-    global _warned
+    global _warned  # noqa: PLW0603 - once per process; tests reset it with monkeypatch
     if not _warned:
         _warned = True
         warnings.warn(f"OpenGL rendering unavailable ({exc.__class__.__name__}: {exc}); using the slow "

@@ -230,13 +230,13 @@ class _Handler(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     server: ViewerServer
 
-    def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+    def do_GET(self) -> None:  # http.server's naming
         self._respond(body=True)
 
-    def do_HEAD(self) -> None:  # noqa: N802
+    def do_HEAD(self) -> None:
         self._respond(body=False)
 
-    def log_message(self, format, *args) -> None:  # noqa: A002 (http.server's signature)
+    def log_message(self, format, *args) -> None:  # http.server's signature
         pass  # the command prints the URL; per-request lines would drown it
 
     def _respond(self, *, body: bool) -> None:
