@@ -235,8 +235,8 @@ def markdown(result) -> str:
     for r in result["spacetime"]:
         rel = r.get("objective_rel_diff_ours_minus_clarabel")
         tol = "" if r["tol"] is None else f"{r['tol']:.0e}"
-        out.append(f"| {r['solver']} | {r['case']} | {tol} | {r['n_frames']:,} | {r['seconds']:.3f} | {r['cpu_seconds']:.3f} | "
-                   f"{r['frames_per_s']:,.0f} | {r['frames_per_cpu_s']:,.0f} | "
+        out.append(f"| {r['solver']} | {r['case']} | {tol} | {r['n_frames']:,} | {r['seconds']:.3f} | "
+                   f"{r['cpu_seconds']:.3f} | {r['frames_per_s']:,.0f} | {r['frames_per_cpu_s']:,.0f} | "
                    f"{'' if rel is None else f'{rel:+.1e}'} |")
     out += ["", "### Peak memory (tracemalloc) vs frames, K = 12", "",
             "| solver | frames | peak MB | bytes/frame |", "|---|---|---|---|"]
