@@ -37,7 +37,7 @@ from itertools import islice
 
 import numpy as np
 
-from ._select_exchange import _addition_gain, _fit_added, refine
+from ._select_exchange import _addition_gain, _column_blocks, _fit_added, refine
 from ._select_pca import hull, principal_axes, spread
 from .decompose import solve_nnls
 
@@ -210,8 +210,12 @@ def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective
 def _best_single(gram: np.ndarray, bound: float, allowed: np.ndarray) -> int:
     """The allowed row ``c`` minimising ``Σ_f min_{0 ≤ a ≤ u} |x_f − a x_c|²`` (all at once)."""
     diag = np.maximum(np.diag(gram), 1e-300)
-    a = np.clip(gram / diag, 0.0, bound)  # a_fc, the best weight of c in frame f
-    return int(np.argmin(np.where(allowed, (a * (a * diag - 2 * gram)).sum(axis=0), np.inf)))
+    error = np.empty(len(diag))
+    for cols in _column_blocks(len(diag)):  # by blocks of columns: no second H-sized array
+        h, d = gram[:, cols], diag[cols]
+        a = np.clip(h / d, 0.0, bound)  # a_fc, the best weight of c in frame f
+        error[cols] = (a * (a * d - 2 * h)).sum(axis=0)
+    return int(np.argmin(np.where(allowed, error, np.inf)))
 
 
 def _grow(obj: Objective, keys: list[int], weights: np.ndarray, cost: np.ndarray, allowed: np.ndarray):

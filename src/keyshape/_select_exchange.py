@@ -17,6 +17,8 @@ import numpy as np
 
 __all__ = ["refine"]
 
+_BLOCK = 256  # columns of H-sized temporaries computed at a time
+
 
 def _fit_added(gram, keys, weights, new, bound, sweeps: int = 12):
     """Weights and costs of ``keys + [new]``, refitting only where ``new`` can help."""
@@ -82,13 +84,23 @@ def _addition_gain(gram: np.ndarray, keys, weights: np.ndarray, bound: float) ->
     ``a = clip(-g_fc / H_cc, 0, u)``, where ``g_fc = Σ_k w_fk H_kc - H_fc`` is the gradient,
     and it lowers that frame's error by ``a (-2 g_fc - a H_cc)``; the gain sums this over frames.
     """
-    grad = weights @ gram[keys] - gram  # (n_frames, n_candidates)
+    grad = weights @ gram[keys]  # (n_frames, n_candidates); in place from here: one more H-sized array
+    grad -= gram
     diag = np.maximum(np.diag(gram), 1e-300)
     np.minimum(grad, 0.0, out=grad)  # only a negative gradient can gain
     if not np.isfinite(bound):  # a = -g / H_cc: the gain is g² / H_cc
         return np.einsum("fc,fc->c", grad, grad) / diag
-    step = np.minimum(grad / -diag, bound)
-    return np.einsum("fc,fc->c", step, -2 * grad - step * diag)
+    gain = np.empty(len(diag))
+    for cols in _column_blocks(grad.shape[1]):  # the step a and the gain by blocks of columns
+        g, d = grad[:, cols], diag[cols]
+        step = np.minimum(g / -d, bound)
+        gain[cols] = np.einsum("fc,fc->c", step, -2 * g - step * d)
+    return gain
+
+
+def _column_blocks(n: int, size: int = _BLOCK) -> list[slice]:
+    """Slices of at most ``size`` columns covering ``0 … n − 1``."""
+    return [slice(start, min(start + size, n)) for start in range(0, n, size)]
 
 
 def _best_exchange(gram, keys, weights, new, bound, n_trials: int = 4, sweeps: int = 12):
@@ -108,7 +120,7 @@ def _best_exchange(gram, keys, weights, new, bound, n_trials: int = 4, sweeps: i
     rows = np.flatnonzero((w[:, drops] > 0).any(axis=1))
     idx = np.array(sets)  # (n_trials, n_keys)
     g = gram[idx[:, :, None], idx[:, None, :]]  # (n_trials, n_keys, n_keys)
-    c = np.moveaxis(gram[rows][:, idx], 1, 0)  # (n_trials, n_rows, n_keys)
+    c = np.moveaxis(gram[rows[:, None, None], idx[None]], 1, 0)  # (n_trials, n_rows, n_keys)
     w_trials[:, rows] = _cd_nnls(g, c, w_trials[:, rows], sweeps, bound)
     costs = np.stack([_costs(gram, s, wt) for s, wt in zip(sets, w_trials)])
     best = int(np.argmin(costs.sum(axis=1)))

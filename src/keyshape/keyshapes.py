@@ -260,7 +260,8 @@ def _candidates(aligned: Track, neutral_frame: int) -> np.ndarray:
 
 def _region_data(aligned: Track, candidates: np.ndarray, neutral_frame: int, landmarks) -> np.ndarray:
     """``X (n_candidates, n_region_landmarks · n_dims)``: candidate frames − neutral frame."""
-    points = aligned.points[candidates][:, landmarks] - aligned.points[neutral_frame, landmarks]
+    points = aligned.points[np.ix_(candidates, landmarks)]  # no copy of the other landmarks
+    points -= aligned.points[neutral_frame, landmarks]
     return points.reshape(candidates.size, -1)
 
 
