@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -221,6 +222,27 @@ def test_run_auto_targets_onto_a_human_like_rig(demo_clip, demo_out, tmp_path):
     assert report["numErrors"] == 0, report["messages"][:5]
     anim = read_glb_animation(out / "animation.glb")
     assert anim.weights.shape[0] == 96 and anim.weights.max() > 0.05
+    # the proposal is saved beside the outputs, and it is exactly what drove the character
+    from keyshape.retarget import Mapping, retarget
+
+    mapping = Mapping.from_file(out / "map.json", targets=list(anim.names))
+    driven = retarget(load_weights_csv(out / "weights.csv"), mapping)
+    np.testing.assert_allclose(driven.values, anim.weights, atol=1e-5)
+    assert len(json.loads((out / "correspondence.json").read_text())["landmarks"]) > 50
+    # edited files go back in: the same keys and correspondence give the same map
+    again = tmp_path / "again"
+    assert main(["run", str(demo_clip), "--end", "96", "--rig", str(demo_out / "animation.glb"),
+                 "--auto-targets", "--correspondence", str(out / "correspondence.json"),
+                 "--keys", str(out / "keys.json"), "--no-preview", "-o", str(again), "-q"]) == 0
+    first, second = (Mapping.from_file(d / "map.json", targets=list(anim.names)) for d in (out, again))
+    assert first.sources == second.sources  # the files round to a few digits
+    np.testing.assert_allclose(second.matrix, first.matrix, atol=1e-4)
+
+
+def test_run_correspondence_needs_auto_targets(demo_clip, tmp_path):
+    result = _cli("run", demo_clip, "--correspondence", tmp_path / "c.json", "-o", tmp_path / "o")
+    assert result.returncode == 2 and "only apply with --auto-targets" in result.stderr
+    assert not (tmp_path / "o").exists()
 
 
 def test_run_auto_targets_on_a_robot_asks_for_a_correspondence(demo_clip, tmp_path):

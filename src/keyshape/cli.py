@@ -155,7 +155,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--auto-targets", action="store_true",
                    help="no sculpting: propose the rig's target shapes from the key shapes (or, for "
                         "a rig with its own blendshapes, a key -> shape mapping); see "
-                        "docs/auto-targets.md")
+                        "docs/auto-targets.md. Also writes the correspondence used (and, for such a rig, "
+                        "map.json) to OUTDIR, to edit and pass back")
+    p.add_argument("--correspondence", type=Path, default=None, metavar="CORR.json",
+                   help="with --auto-targets: landmark -> mesh point file (default: found automatically)")
+    p.add_argument("--normalize", action="store_true",
+                   help="with --auto-targets on a rig with its own blendshapes: scale each target's gains "
+                        "so the key driving it most drives it fully (stylised rigs)")
     add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     add_key_options(p)
@@ -266,6 +272,7 @@ def _run(args, video: Path) -> None:
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          neutral=args.neutral, auto_targets=args.auto_targets,
+                         correspondence=args.correspondence, normalize=args.normalize,
                          capture=capture_kwargs(args), preview=not args.no_preview,
                          **solve_kwargs(args))
     summary = run_take(video, args.output, options, progress=_progress(args))
@@ -285,6 +292,7 @@ def cmd_run(args) -> None:
 def cmd_demo(args) -> None:
     args.rig, args.regions, args.count, args.method, args.neutral = None, "upper-lower", 8, "spa", None
     args.map, args.keys, args.max_error, args.auto_targets = None, None, 2.0, False
+    args.correspondence, args.normalize = None, False
     args.start, args.end, args.fps, args.face, args.no_preview = 0, None, None, 0, False
     args.one_euro, args.smooth, args.max, args.convex = None, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, False
     clip = Path(str(resources.files("keyshape").joinpath(DEMO_CLIP)))
@@ -311,7 +319,10 @@ def _blas_threads():
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``keyshape``; returns the exit code."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.verb == "run" and not args.auto_targets and (args.correspondence or args.normalize):
+        parser.error("--correspondence and --normalize only apply with --auto-targets")
     try:
         handler = getattr(args, "handler", None) or COMMANDS[args.verb]
         with _blas_threads():

@@ -41,6 +41,8 @@ class RunOptions:
     upper: float | None = DEFAULT_UPPER
     convex: bool = False
     auto_targets: bool = False  # propose the rig's targets (or a mapping) for the keys
+    correspondence: Path | None = None  # auto_targets: landmark -> mesh file (default: found)
+    normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
     preview: bool = True
     extras: bool = True
 
@@ -60,8 +62,9 @@ class TakeSummary:
     keys: KeyShapes = field(repr=False, compare=False, default=None)
 
 
-def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object, bool]:
-    """The character, the key -> target mapping, and whether the rig file is kept whole."""
+def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object, bool, object]:
+    """The character, the key -> target mapping, whether the rig file is kept whole, and the
+    :class:`~keyshape.propose.AutoTargets` proposal (None without ``auto_targets``)."""
     from .retarget import Mapping
     from .rig import load_rig
 
@@ -69,16 +72,17 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object,
         from .characters import default_character
 
         rig = default_character(keys)  # a stylised head with proposed targets (issue 7)
-        return rig, Mapping.by_name(keys.names, rig.names), False
+        return rig, Mapping.by_name(keys.names, rig.names), False, None
     if options.auto_targets:
         from .propose import auto_targets
 
-        auto = auto_targets(keys, options.rig)
-        return auto.rig, auto.mapping, auto.route == "mapping"
+        auto = auto_targets(keys, options.rig, correspondence=options.correspondence,
+                            normalize=options.normalize)
+        return auto.rig, auto.mapping, auto.route == "mapping", auto
     rig = load_rig(options.rig)
     if options.mapping is not None:
-        return rig, Mapping.from_file(options.mapping, targets=rig.names), True
-    return rig, Mapping.by_name(keys.names, rig.names), True
+        return rig, Mapping.from_file(options.mapping, targets=rig.names), True, None
+    return rig, Mapping.by_name(keys.names, rig.names), True, None
 
 
 def _error_pct(solved, keys: KeyShapes) -> float:
@@ -143,11 +147,15 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
                              upper=options.upper, max_error=options.max_error)
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
-    rig, mapping, keep_file = _rig_and_mapping(options, keys)
+    rig, mapping, keep_file, auto = _rig_and_mapping(options, keys)
     outdir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
     try:
         _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file)
+        if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
+            auto.correspondence.save(stage / "correspondence.json")
+            if auto.route == "mapping":
+                auto.mapping.save(stage / "map.json")
         if options.extras:
             from .report import write_take_extras
 
