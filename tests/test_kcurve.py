@@ -4,6 +4,7 @@ selected key sets, the unit is the inter-ocular distance; on the real clip spa w
 import numpy as np
 import pytest
 
+from keyshape import keyshapes
 from keyshape.align import align, choose_neutral
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
@@ -56,6 +57,25 @@ def test_curve_is_the_error_of_the_keys_find_keyshapes_returns(take, curve):
             for region in perf.regions:
                 got = curve.errors[method][region][k - 1]
                 assert got == pytest.approx(100 * expected[region] / scale, rel=1e-8), (method, k, region)
+
+
+def test_beyond_the_limit_the_curve_is_still_the_error_of_the_keys_find_keyshapes_returns(take, monkeypatch):
+    """With fewer MAX_CANDIDATES than frames the keys come from a pool, their errors from every frame."""
+    perf, aligned, neutral = take  # 144 candidate frames
+    ks = [1, 4, 9]
+    every = error_vs_k(aligned, regions=perf.regions, neutral_frame=neutral, ks=ks, methods=("pca",))
+    monkeypatch.setattr(keyshapes, "MAX_CANDIDATES", 60)
+    curve = error_vs_k(aligned, regions=perf.regions, neutral_frame=neutral, ks=ks, upper=1.0)
+    for region in perf.regions:  # pca from the scatter matrix's eigenvalues: the SVD's
+        np.testing.assert_allclose(curve.errors["pca"][region], every.errors["pca"][region], rtol=1e-9)
+    for method in ("spa", "spread", "hull"):
+        for i, k in enumerate(ks):
+            keys = find_keyshapes(aligned, regions=perf.regions, n_keys=k, method=method,
+                                  neutral_frame=neutral, upper=1.0)
+            expected = reconstruction_error(aligned, keys, upper=1.0)
+            for region in perf.regions:
+                got = curve.errors[method][region][i]
+                assert got == pytest.approx(100 * expected[region] / curve.scale, rel=1e-8), (method, k, region)
 
 
 def test_auto_k_is_the_first_k_of_the_curve_below_the_target(take, curve):

@@ -1,15 +1,15 @@
 """Key-shape selection: real frames, planted extremes, SPA quality, strong keys under a bound,
-automatic K, determinism, validation."""
+automatic K, determinism, validation, long takes (a pool of candidates)."""
 
 import numpy as np
 import pytest
 
-from keyshape import _select
+from keyshape import _select, keyshapes
 from keyshape.align import align
 from keyshape.containers import KeyShapes, Track
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
-from keyshape.keyshapes import MAX_KEYS, METHODS, KChoice, choose_n_keys, find_keyshapes
+from keyshape.keyshapes import MAX_CANDIDATES, MAX_KEYS, METHODS, KChoice, choose_n_keys, find_keyshapes
 from keyshape.metrics import face_scale, reconstruction_error
 
 
@@ -254,3 +254,104 @@ def test_auto_k_works_for_the_papers_methods(method):
     choices = choose_n_keys(aligned, regions=perf.regions, neutral_frame=perf.neutral_frame, method=method,
                             max_error=0.05)
     assert all(1 <= c.k <= MAX_KEYS and (c.error < 0.05 or c.k == MAX_KEYS) for c in choices.values())
+
+
+# --------------------------------------------------------------------------- long takes: a pool of candidates
+
+
+def test_pool_is_every_row_up_to_the_limit():
+    X = np.random.default_rng(0).normal(size=(300, 6))
+    pool = _select.pool(X, 300)
+    assert pool.whole and pool.X is X and pool.axes is None and pool.q95 is None
+    np.testing.assert_array_equal(pool.rows, np.arange(300))
+
+
+@pytest.fixture(scope="module")
+def long_region():
+    """``(X, pool)``: the upper region of 3,000 noisy frames, a pool of 400 of its rows."""
+    perf, aligned, neutral = _aligned(n_frames=3000, n_keys=16, noise=0.3, random_state=11)
+    landmarks = perf.regions["upper"]
+    X = (np.delete(aligned.points, neutral, axis=0)[:, landmarks] - aligned.points[neutral, landmarks])
+    X = X.reshape(len(X), -1)
+    return X, _select.pool(X, 400)
+
+
+def test_pool_beyond_the_limit_is_bounded_and_knows_all_rows(long_region):
+    X, pool = long_region
+    assert not pool.whole and pool.rows.size == 400 and (np.diff(pool.rows) > 0).all()
+    np.testing.assert_array_equal(pool.X, X[pool.rows])
+    assert pool.q95 == pytest.approx(np.quantile(np.linalg.norm(X, axis=1), 0.95))
+    axes = _select.principal_axes(X)  # those of every row, up to sign
+    assert pool.axes.shape == axes.shape
+    np.testing.assert_allclose(np.abs((pool.axes[:3] * axes[:3]).sum(axis=1)), 1.0, atol=1e-8)
+    strongest = np.argsort(np.linalg.norm(X, axis=1))[-20:]
+    assert np.isin(strongest, pool.rows).all()  # farthest points from the neutral come first
+
+
+@pytest.mark.parametrize("kernel", [_select.spread, _select.hull], ids=["spread", "hull"])
+def test_the_papers_methods_pick_on_the_pool_what_they_pick_on_all_rows(long_region, kernel):
+    X, pool = long_region
+    for k in (1, 4, 9, 16, 24, 30):
+        np.testing.assert_array_equal(pool.rows[kernel(pool.X, k, axes=pool.axes)], kernel(X, k, axes=pool.axes))
+
+
+def test_exact_error_of_all_rows_by_blocks(long_region, monkeypatch):
+    X, pool = long_region
+    keys = pool.rows[_select.spa(pool.X, 5, upper=1.0, axes=pool.axes, q95=pool.q95)]
+    whole = _select.Objective(X, 1.0)(keys)
+    monkeypatch.setattr(_select, "_BLOCK_ROWS", 700)
+    assert _select.squared_error(X, keys, 1.0) == pytest.approx(whole, rel=1e-10)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_limit_below_the_frames_searches_a_pool_of_them(noisy, method, monkeypatch):
+    perf, aligned, neutral = noisy  # 191 candidate frames
+    every = find_keyshapes(aligned, regions=perf.regions, n_keys=4, method=method, neutral_frame=neutral)
+    monkeypatch.setattr(keyshapes, "MAX_CANDIDATES", 100)
+    pooled = find_keyshapes(aligned, regions=perf.regions, n_keys=4, method=method, neutral_frame=neutral)
+    assert neutral not in pooled.frames and aligned.valid[pooled.frames].all()
+    for region in perf.regions:
+        frames = pooled.frames[pooled.keys_of(region)]
+        assert len(set(frames.tolist())) == 4
+        if method != "spa":  # the paper's picks are in the pool
+            assert sorted(frames) == sorted(every.frames[every.keys_of(region)])
+    errors, reference = (reconstruction_error(aligned, keys, upper=1.0) for keys in (pooled, every))
+    assert all(errors[r] <= 1.1 * reference[r] for r in perf.regions), (errors, reference)
+
+
+def test_auto_k_beyond_the_limit_measures_every_frame(noisy, monkeypatch):
+    perf, aligned, neutral = noisy
+    monkeypatch.setattr(keyshapes, "MAX_CANDIDATES", 100)
+    choices = choose_n_keys(aligned, regions=perf.regions, neutral_frame=neutral, max_error=3.0)
+    auto = find_keyshapes(aligned, regions=perf.regions, n_keys="auto", max_error=3.0, neutral_frame=neutral)
+    fixed = find_keyshapes(aligned, regions=perf.regions, n_keys={r: c.k for r, c in choices.items()},
+                           neutral_frame=neutral)
+    np.testing.assert_array_equal(auto.frames, fixed.frames)
+    scale, _ = face_scale(aligned.points[neutral])
+    reached = reconstruction_error(aligned, auto, upper=1.0)
+    for region, choice in choices.items():
+        assert choice.error == pytest.approx(100 * reached[region] / scale, rel=1e-9) and choice.error < 3.0
+
+
+def test_long_take_keys_reconstruct_as_well_as_a_search_of_every_frame_on_a_short_one():
+    """20,000 frames, keys searched among a pool of MAX_CANDIDATES, against 1,500 frames of the
+    same rig, all candidates: both find (nearly all) the planted extremes, with the same error."""
+    assert 1500 < MAX_CANDIDATES < 20000
+    errors, found = {}, {}
+    for n_frames in (1500, 20000):
+        perf, aligned, neutral = _aligned(n_frames=n_frames, n_keys=12, noise=0.3, random_state=5)
+        keys = find_keyshapes(aligned, regions=perf.regions, n_keys=6, neutral_frame=neutral)
+        assert len(set(keys.frames.tolist())) == 12 and neutral not in keys.frames
+        errors[n_frames] = reconstruction_error(aligned, keys, upper=1.0)
+        found[n_frames] = int(np.isin(perf.extreme_frames, keys.frames).sum())
+    assert found[1500] == 12 and found[20000] >= 9, found
+    for region, short in errors[1500].items():
+        assert errors[20000][region] <= 1.05 * short, (region, errors)
+
+
+def test_the_keys_help_states_the_limit(capsys):
+    from keyshape.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["keys", "--help"])
+    assert f"more than {MAX_CANDIDATES} frames" in " ".join(capsys.readouterr().out.split())

@@ -19,6 +19,12 @@ This module holds :class:`Objective`, :func:`steps` and ``spa`` (:func:`spa`,
 in :mod:`keyshape._select_pca`, the exchange search :func:`refine` in
 :mod:`keyshape._select_exchange`; both are re-exported here.
 
+The search keeps the Gram matrix ``H = X Xᵀ`` (``n_frames²`` floats, and one more array of
+that size while it scores additions). For a long ``X``, :func:`pool` picks the rows to
+search among (the paper's candidates, successive-projection and farthest-point extremes,
+evenly spaced rows) in time and memory linear in ``n_frames``, and :func:`squared_error`
+measures a key set on every row block by block.
+
 References
 ----------
 .. [1] E. Chuang and C. Bregler, "Performance driven facial animation using blendshape
@@ -38,8 +44,11 @@ from itertools import islice
 import numpy as np
 
 from ._select_exchange import _addition_gain, _column_blocks, _fit_added, refine
-from ._select_pca import hull, principal_axes, spread
+from ._select_pca import Pool, hull, pool, principal_axes, spread
 from .decompose import solve_nnls
+
+__all__ = ["MIN_STRENGTH", "Objective", "Pool", "hull", "pool", "principal_axes", "refine", "spa", "spa_steps",
+           "spread", "squared_error", "steps"]
 
 _PATIENCE = 4
 MIN_STRENGTH = 0.25  # spa keys: delta at least this fraction of the region's 95th-percentile delta
@@ -99,7 +108,8 @@ class Objective:
 
 
 def steps(X: np.ndarray, method: str, *, upper: float | None = None,
-          objective: Objective | None = None) -> Iterator[np.ndarray]:
+          objective: Objective | None = None, axes: np.ndarray | None = None,
+          q95: float | None = None) -> Iterator[np.ndarray]:
     """The key sets of ``method`` for ``K = 1, 2, …, n_frames``.
 
     ``spread`` and ``hull`` sets are computed afresh for every ``K`` (from one PCA);
@@ -113,22 +123,25 @@ def steps(X: np.ndarray, method: str, *, upper: float | None = None,
         Bound of the weights in ``E_u`` (``spa`` only; the paper's methods ignore it).
     objective : Objective, optional, keyword-only
         A shared :class:`Objective` of ``X``.
+    axes, q95 : keyword-only
+        Those of the whole take when ``X`` is a :class:`Pool` of it (see :func:`spa_steps`).
 
     Yields
     ------
     (K,) int, distinct rows of ``X``
     """
     if method == "spa":
-        yield from spa_steps(X, upper=upper, objective=objective)
+        yield from spa_steps(X, upper=upper, objective=objective, axes=axes, q95=q95)
         return
     kernel = spread if method == "spread" else hull
-    axes = principal_axes(X)
+    axes = principal_axes(X) if axes is None else axes
     for k in range(1, len(X) + 1):
         yield kernel(X, k, axes=axes)
 
 
 def spa(X: np.ndarray, n_keys: int, *, upper: float | None = None,
-        objective: Objective | None = None, min_strength: float | None = None) -> np.ndarray:
+        objective: Objective | None = None, min_strength: float | None = None,
+        axes: np.ndarray | None = None, q95: float | None = None) -> np.ndarray:
     """Successive projection grown one key at a time, each set refined by exchanges.
 
     The ``n_keys``-th set of :func:`spa_steps`.
@@ -141,19 +154,20 @@ def spa(X: np.ndarray, n_keys: int, *, upper: float | None = None,
         Bound ``u`` of the weights in the objective ``E_u``; None for none.
     objective : Objective, optional, keyword-only
         A shared :class:`Objective` of ``X`` (then ``upper`` is its own).
-    min_strength : float, keyword-only
+    min_strength, axes, q95 : keyword-only
         See :func:`spa_steps`.
 
     Returns
     -------
     (n_keys,) int, distinct rows of ``X``
     """
-    steps = spa_steps(X, upper=upper, objective=objective, min_strength=min_strength)
+    steps = spa_steps(X, upper=upper, objective=objective, min_strength=min_strength, axes=axes, q95=q95)
     return next(islice(steps, n_keys - 1, None))
 
 
 def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective | None = None,
-              min_strength: float | None = None) -> Iterator[np.ndarray]:
+              min_strength: float | None = None, axes: np.ndarray | None = None,
+              q95: float | None = None) -> Iterator[np.ndarray]:
     """Key sets for ``K = 1, 2, …, n_frames``, each grown from the one before.
 
     Keys are *strong* rows: ``|x| ≥ min_strength · q95``, with ``q95`` the 95th percentile
@@ -179,6 +193,11 @@ def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective
     objective : Objective, optional, keyword-only
     min_strength : float, optional, keyword-only
         Default ``MIN_STRENGTH`` (0.25); 0 lets every row be a key.
+    axes : (rank, n_features) float, optional, keyword-only
+        Principal axes for the ``spread`` and ``hull`` seeds; default those of ``X``.
+    q95 : float, optional, keyword-only
+        The range of motion ``q95``; default that of the rows of ``X``. A :class:`Pool` of a
+        long take gives both from all its rows.
 
     Yields
     ------
@@ -187,9 +206,10 @@ def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective
     obj = objective if objective is not None else Objective(X, upper)
     if not len(obj.X):
         return
-    axes = principal_axes(obj.X)  # as in steps(), so the seeds' fits are shared
+    axes = principal_axes(obj.X) if axes is None else axes  # as in steps(): the seeds' fits are shared
     strength = np.sqrt(np.diag(obj.gram))
-    floor = (MIN_STRENGTH if min_strength is None else min_strength) * np.quantile(strength, 0.95)
+    q95 = np.quantile(strength, 0.95) if q95 is None else q95
+    floor = (MIN_STRENGTH if min_strength is None else min_strength) * q95
     allowed = strength >= floor
     keys = [_best_single(obj.gram, obj.bound, allowed)]
     weights, cost = obj.fit(keys)
@@ -240,3 +260,18 @@ def _against_seeds(obj: Objective, keys: list[int], seeds: list[np.ndarray], all
                        allowed=allowed)[0]
         keys = again if obj(again) < obj(keys) else keys
     return keys, *obj.fit(keys)
+
+
+_BLOCK_ROWS = 4096  # rows per block of the exact error of a long X
+
+
+def squared_error(X: np.ndarray, rows, upper: float | None = None) -> float:
+    """``E_u(rows)`` over every row of ``X``, block by block: :class:`Objective`'s value with
+    no rows × rows array (memory linear in ``len(X)``, bounded per block)."""
+    basis = X[np.asarray(rows, dtype=int)]
+    total = 0.0
+    for start in range(0, len(X), _BLOCK_ROWS):
+        block = X[start:start + _BLOCK_ROWS]
+        w = solve_nnls(basis.T, block, upper=upper)
+        total += float(((block - w @ basis) ** 2).sum())
+    return total

@@ -118,7 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("keys", parents=[common], formatter_class=_formatter,
                        help="discover key shapes (real frames) per region",
                        description="Choose K real frames per face region that span the performance "
-                                   "(the key shapes an artist will sculpt on the character).")
+                                   "(the key shapes an artist will sculpt on the character). With more "
+                                   "than 2048 frames in all (long or many takes), each region's keys are "
+                                   "searched among 2048 of them (the extremes and evenly spaced frames), "
+                                   "so memory stays bounded; --count auto still measures every frame.")
     p.add_argument("tracks", type=Path, nargs="+", metavar="TRACK",
                    help="track file(s) (.npz with points and fps, or a landmark CSV frame,x0,y0[,z0],"
                         "x1,... from another tool); several takes of one actor give one key set")

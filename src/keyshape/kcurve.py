@@ -33,7 +33,8 @@ from itertools import islice
 
 import numpy as np
 
-from . import _select
+from . import _select, keyshapes
+from ._select_pca import scatter
 from .containers import Track
 from .exceptions import InputError
 from .keyshapes import (
@@ -102,7 +103,11 @@ def error_vs_k(
 
     The key sets are those :func:`keyshape.keyshapes.find_keyshapes` returns for each
     ``K`` (same candidates, same ``upper``); work is shared across ``K``: one PCA per
-    region, ``spa``'s sets grown one from the other, every set fitted once.
+    region, ``spa``'s sets grown one from the other, every set fitted once. Beyond
+    ``keyshapes.MAX_CANDIDATES`` candidate frames the sets come from the same pool of
+    frames as there (see "Long takes" in :mod:`keyshape.keyshapes`) and each is fitted to
+    every frame block by block; ``pca`` then takes the ``σ²`` as the eigenvalues of the
+    scatter matrix. Errors are always over every valid frame.
 
     Parameters
     ----------
@@ -151,14 +156,19 @@ def error_vs_k(
 def _region_curves(data: np.ndarray, ks: np.ndarray, methods: tuple[str, ...],
                    upper: float | None) -> dict[str, np.ndarray]:
     """method -> (n_ks,) summed squared errors over the valid frames (the neutral adds 0)."""
-    objective = _select.Objective(data, upper)
+    pool = _select.pool(data, keyshapes.MAX_CANDIDATES)
+    objective = _select.Objective(pool.X, upper)
     out = {}
     for method in methods:
         if method == "pca":
             out[method] = _pca_squared(data, ks)
-        else:
-            sets = list(islice(_select.steps(data, method, objective=objective), int(ks.max())))
+            continue
+        steps = _select.steps(pool.X, method, objective=objective, axes=pool.axes, q95=pool.q95)
+        sets = list(islice(steps, int(ks.max())))
+        if pool.whole:
             out[method] = np.array([objective(sets[k - 1]) for k in ks])
+        else:  # the keys of the pool, their error over every frame
+            out[method] = np.array([_select.squared_error(data, pool.rows[sets[k - 1]], upper) for k in ks])
     return out
 
 
@@ -168,10 +178,14 @@ def _pca_squared(data: np.ndarray, ks: np.ndarray) -> np.ndarray:
     The best ``K``-dimensional affine fit leaves the trailing singular values (Eckart &
     Young 1936): ``E_K = Σ_{i > K} σ_i²`` of the centred data.
     """
-    frames = np.vstack([data, np.zeros((1, data.shape[1]))])  # the neutral is the origin
-    sv = np.linalg.svd(frames - frames.mean(axis=0), compute_uv=False)
-    tail = np.concatenate([np.cumsum((sv**2)[::-1])[::-1], [0.0]])  # tail[k] = Σ_{i >= k} σ_i²
-    return tail[np.minimum(ks, sv.size)]
+    if len(data) > keyshapes.MAX_CANDIDATES:  # σ² as the eigenvalues of the scatter matrix: no copy of the data
+        mean = data.sum(axis=0) / (len(data) + 1)
+        squares = np.linalg.eigvalsh(scatter(data, mean) + np.outer(mean, mean))[::-1].clip(0.0)
+    else:
+        frames = np.vstack([data, np.zeros((1, data.shape[1]))])  # the neutral is the origin
+        squares = np.linalg.svd(frames - frames.mean(axis=0), compute_uv=False) ** 2
+    tail = np.concatenate([np.cumsum(squares[::-1])[::-1], [0.0]])  # tail[k] = Σ_{i >= k} σ_i²
+    return tail[np.minimum(ks, squares.size)]
 
 
 def _check_methods(methods) -> tuple[str, ...]:

@@ -36,6 +36,18 @@ The number of keys can be chosen per region from an error target (``n_keys="auto
 :func:`choose_n_keys`): the smallest ``K`` whose RMS reconstruction error is below
 ``max_error`` % of the inter-ocular distance.
 
+Long takes
+----------
+The search works on the Gram matrix ``X Xᵀ`` (``n_candidates²`` floats), so a region with
+more than ``MAX_CANDIDATES`` (2048) candidate frames, e.g. several long takes selected
+together, has its keys searched among 2048 of them (:func:`keyshape._select.pool`): the
+frames ``spread`` and ``hull`` pick on the whole take (extremes along the principal axes
+and the outer hull layers, with the principal axes and the range of motion of all frames),
+successive-projection and farthest-point extremes (a quarter of the 2048) and evenly
+spaced frames for the rest. Memory is then bounded but for terms linear in the frames
+(the region's ``X``); the errors of ``n_keys="auto"`` are still those of every frame. Up
+to 2048 candidates nothing changes: the keys are those of the search over all frames.
+
 References
 ----------
 .. [1] E. Chuang and C. Bregler, "Performance driven facial animation using blendshape
@@ -57,12 +69,13 @@ from .containers import KeyShapes, Track
 from .exceptions import InputError
 from .metrics import face_scale
 
-__all__ = ["MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "choose_n_keys", "find_keyshapes"]
+__all__ = ["MAX_CANDIDATES", "MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "choose_n_keys", "find_keyshapes"]
 
 Method = Literal["spa", "spread", "hull"]
 METHODS: tuple[str, ...] = ("spa", "spread", "hull")
 MAX_ERROR = 2.0  # % of the inter-ocular distance: the default target of n_keys="auto"
 MAX_KEYS = 24  # default cap of n_keys="auto" per region: a sculpt list an artist can still make
+MAX_CANDIDATES = 2048  # more candidate frames: keys are searched among this many (see the module notes)
 
 
 class KChoice(NamedTuple):
@@ -125,6 +138,13 @@ def find_keyshapes(
     ------
     InputError
         For an unknown method, a bad region or neutral frame, or too few frames.
+
+    Notes
+    -----
+    With more than ``MAX_CANDIDATES`` (2048) valid frames besides the neutral, each
+    region's keys are searched among 2048 well-spread frames, so memory stays bounded for
+    long or many takes (see "Long takes" in the module notes); up to 2048 every frame is a
+    candidate.
 
     References
     ----------
@@ -242,13 +262,16 @@ def _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys):
     for region, landmarks in regions.items():
         data = _region_data(aligned, candidates, neutral_frame, landmarks)
         to_percent = 100.0 / (scale * np.sqrt(n_valid * len(landmarks)))  # sqrt(Σ|r|²) -> RMS %
-        objective = _select.Objective(data, upper)
+        pool = _select.pool(data, MAX_CANDIDATES)
+        objective = _select.Objective(pool.X, upper)
         rows, error = np.zeros(0, dtype=int), np.inf
-        for rows in islice(_select.steps(data, method, objective=objective), max_keys):
-            error = np.sqrt(objective(rows)) * to_percent
+        for rows in islice(_select.steps(pool.X, method, objective=objective, axes=pool.axes, q95=pool.q95),
+                           max_keys):
+            squared = objective(rows) if pool.whole else _select.squared_error(data, pool.rows[rows], upper)
+            error = np.sqrt(squared) * to_percent
             if error < max_error:
                 break
-        out[region] = (rows, float(error))
+        out[region] = (pool.rows[rows], float(error))
     return out
 
 
@@ -273,11 +296,14 @@ def _select_rows(data: np.ndarray, n_keys: int, method: str, upper: float | None
                          f"{len(data)} valid frames besides the neutral one")
     if n_keys == 0:
         return np.zeros(0, dtype=int)
+    pool = _select.pool(data, MAX_CANDIDATES)
     if method == "spread":
-        return _select.spread(data, n_keys)
-    if method == "hull":
-        return _select.hull(data, n_keys)
-    return _select.spa(data, n_keys, upper=upper)
+        rows = _select.spread(pool.X, n_keys, axes=pool.axes)
+    elif method == "hull":
+        rows = _select.hull(pool.X, n_keys, axes=pool.axes)
+    else:
+        rows = _select.spa(pool.X, n_keys, upper=upper, axes=pool.axes, q95=pool.q95)
+    return pool.rows[rows]
 
 
 def _region_deltas(points, neutral, frames, key_regions, regions) -> np.ndarray:
