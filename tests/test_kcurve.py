@@ -127,9 +127,10 @@ def test_validation_messages(take):
     perf, aligned, neutral = take
     with pytest.raises(InputError, match=r"methods must be some of \('pca', 'spread', 'hull', 'spa'\); got \('nmf',\)"):
         error_vs_k(aligned, regions=perf.regions, neutral_frame=neutral, methods=["nmf"])
-    with pytest.raises(InputError, match=r"ks must lie in 1..144 \(the valid frames besides the neutral\); got 0..3"):
+    message = r"ks must lie in 1\.\.144 \(the valid frames besides the neutral\); got 0\.\.3"
+    with pytest.raises(InputError, match=message):
         error_vs_k(aligned, regions=perf.regions, neutral_frame=neutral, ks=[0, 3])
-    with pytest.raises(InputError, match="ks must lie in 1..144"):
+    with pytest.raises(InputError, match=r"ks must lie in 1\.\.144"):
         error_vs_k(aligned, regions=perf.regions, neutral_frame=neutral, ks=[200])
     with pytest.raises(InputError, match="ks must be a non-empty sequence of ints"):
         error_vs_k(aligned, regions=perf.regions, neutral_frame=neutral, ks=[])

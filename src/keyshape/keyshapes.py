@@ -344,7 +344,7 @@ def _check_regions(regions, n_landmarks: int) -> dict[str, np.ndarray]:
 def _check_counts(n_keys, regions: dict) -> dict[str, int]:
     if isinstance(n_keys, str):
         raise InputError(f"n_keys must be an int, a dict of region -> int, or 'auto'; got {n_keys!r}")
-    counts = n_keys if isinstance(n_keys, dict) else {name: n_keys for name in regions}
+    counts = n_keys if isinstance(n_keys, dict) else dict.fromkeys(regions, n_keys)
     missing = set(regions) - set(counts)
     if missing:
         raise InputError(f"n_keys gives no count for regions {sorted(missing)}")
