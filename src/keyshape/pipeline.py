@@ -74,12 +74,24 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
     region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
     stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
     neutral = _check_neutral(first, neutral, stable)
-    reference = first.points[neutral]
-    aligned = [align(t, reference=reference, stable=stable)[0].points for t in tracks]
-    together = Track(np.concatenate(aligned), first.fps)
+    together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps)
     keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
                           neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)
     return _split_takes(keys, [t.n_frames for t in tracks], takes)
+
+
+def _aligned_together(tracks: Sequence[Track], reference: np.ndarray, stable: np.ndarray) -> np.ndarray:
+    """(sum of n_frames, n_landmarks, n_dims): every take aligned onto ``reference``, end to end.
+
+    Filled take by take into one array, so only one take's aligned copy exists besides it.
+    """
+    first = tracks[0]
+    out = np.empty((sum(t.n_frames for t in tracks), first.n_landmarks, first.n_dims))
+    start = 0
+    for t in tracks:
+        out[start : start + t.n_frames] = align(t, reference=reference, stable=stable)[0].points
+        start += t.n_frames
+    return out
 
 
 def _split_takes(keys: KeyShapes, lengths: list[int], takes: list[str]) -> KeyShapes:
@@ -152,7 +164,7 @@ def fit_errors(tracks: Track | Sequence[Track], keys: KeyShapes, *,
     """
     tracks = [tracks] if isinstance(tracks, Track) else list(tracks)
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
-    points = np.concatenate([align(t, reference=keys.neutral, stable=stable)[0].points for t in tracks])
+    points = _aligned_together(tracks, keys.neutral, stable)
     errors = reconstruction_error(Track(points, tracks[0].fps), keys, upper=upper)
     length, unit = face_scale(keys.neutral)
     return {region: 100 * e / length for region, e in errors.items()}, unit
