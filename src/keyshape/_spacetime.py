@@ -124,8 +124,9 @@ def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, sw
     converges linearly, its certified gap falling by a steady factor per iteration (about
     100× per 10 on typical problems). After 20 iterations and then after each certified
     round, that factor predicts how many more iterations reach ``rtol``, and the next
-    certificate is placed there (at most :data:`_MAX_ROUND` iterations on). Where ADMM stalls, or would need more iterations than
-    an active-set Newton step costs (:data:`_NEWTON_COST`) once its gap is below ``switch``,
+    certificate is placed there (at most :data:`_MAX_ROUND` iterations on). Where ADMM
+    stalls, or would need more iterations than an active-set Newton step costs
+    (:data:`_NEWTON_COST`) once its gap is below ``switch``,
     primal–dual active-set steps finish, each certified by the dual bound of its face; when
     the exchanges stop shrinking they are damped (:func:`exchange`).
 
