@@ -14,6 +14,7 @@ from . import __version__
 from ._defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from .commands import discover
 from .commands._argtypes import bound, non_negative, positive, whole
+from .commands.propose import add_correspondence_option, add_normalize_option
 from .exceptions import InputError, KeyshapeError
 
 DEMO_CLIP = "data/WolfgangLanger_Pexels.mp4"
@@ -160,11 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "a rig with its own blendshapes, a key -> shape mapping); see "
                         "docs/auto-targets.md. Also writes the correspondence used (and, for such a rig, "
                         "map.json) to OUTDIR, to edit and pass back")
-    p.add_argument("--correspondence", type=Path, default=None, metavar="CORR.json",
-                   help="with --auto-targets: landmark -> mesh point file (default: found automatically)")
-    p.add_argument("--normalize", action="store_true",
-                   help="with --auto-targets on a rig with its own blendshapes: scale each target's gains "
-                        "so the key driving it most drives it fully (stylised rigs)")
+    add_correspondence_option(p, when="with --auto-targets: ")
+    add_normalize_option(p, when="with --auto-targets on a rig with its own blendshapes: ")
     add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     add_key_options(p)

@@ -29,14 +29,26 @@ examples:
 """
 
 
+def add_correspondence_option(p, when: str = "") -> None:
+    """``--correspondence CORR.json`` (shared with ``run --auto-targets``; ``when`` prefixes the help)."""
+    p.add_argument("--correspondence", type=Path, default=None, metavar="CORR.json",
+                   help=f"{when}landmark -> mesh point file (default: found automatically)")
+
+
+def add_normalize_option(p, when: str = "mapping: ") -> None:
+    """``--normalize`` (shared with ``run --auto-targets``; ``when`` prefixes the help)."""
+    p.add_argument("--normalize", action="store_true",
+                   help=f"{when}scale each target's gains so the key driving it most drives it fully "
+                        "(stylised rigs whose targets exaggerate; default: the actor's amplitude)")
+
+
 def add_arguments(p) -> None:
     p.epilog = EPILOG
     p.add_argument("keys", type=Path, help="key file from `keyshape keys` (or `run`)")
     p.add_argument("--rig", type=Path, default=None,
                    help="the character: .glb/.gltf, .obj, an OBJ rig folder or a USD rig (default: the "
                         "built-in stylised head)")
-    p.add_argument("--correspondence", type=Path, default=None, metavar="CORR.json",
-                   help="landmark -> mesh point file (default: found automatically)")
+    add_correspondence_option(p)
     p.add_argument("--save-correspondence", type=Path, default=None, metavar="CORR.json",
                    help="also write the correspondence used, to check or edit it")
     p.add_argument("--rig-unit", default="m", metavar="UNIT",
@@ -44,9 +56,7 @@ def add_arguments(p) -> None:
     p.add_argument("--mesh", action="append", default=None, metavar="NAME",
                    help="glTF mesh(es) to propose targets on (repeatable; default: those with morph targets, "
                         "else all)")
-    p.add_argument("--normalize", action="store_true",
-                   help="mapping: scale each target's gains so the key driving it most drives it fully "
-                        "(stylised rigs whose targets exaggerate; default: the actor's amplitude)")
+    add_normalize_option(p)
     p.add_argument("--falloff", type=float, default=1.0,
                    help="transfer: how far motion spreads beyond the moving landmarks, in face radii (default 1)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
