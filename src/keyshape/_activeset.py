@@ -12,10 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import _kernels
+from ._kernels_nnls import FREE, LOWER, UPPER
 from ._sequence import (
-    FREE,
-    LOWER,
-    UPPER,
     Best,
     Sequence,
     hessian_mul,

@@ -11,8 +11,8 @@ import numpy as np
 
 from ._kernels import _jit
 
-_NNLS_TOL = 1e-11  # relative tolerance of the KKT tests (as keyshape._nnls._TOL)
-_LOWER, _FREE, _UPPER = 0, 1, 2
+KKT_TOL = 1e-11  # relative tolerance of the KKT tests, here and in keyshape._nnls
+LOWER, FREE, UPPER = 0, 1, 2  # the state of a variable: at 0, free, at its upper bound
 
 
 @_jit
@@ -25,15 +25,15 @@ def _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
     K = c.shape[0]
     m = 0
     for i in range(K):
-        x[i] = upper[i] if s[i] == _UPPER else 0.0
-        if s[i] == _FREE:
+        x[i] = upper[i] if s[i] == UPPER else 0.0
+        if s[i] == FREE:
             idx[m] = i
             m += 1
     for a in range(m):
         i = idx[a]
         r = c[i]
         for j in range(K):
-            if s[j] == _UPPER:
+            if s[j] == UPPER:
                 r -= G[i, j] * upper[j]
         rhs[a] = r
         for b in range(a + 1):
@@ -96,16 +96,16 @@ def block_pivoting(G, C, upper, bounded, state, X):
             scale = 1.0
             for i in range(K):
                 scale = max(scale, 1.0 + abs(x[i]))
-            tol_x, tol_y = _NNLS_TOL * scale, _NNLS_TOL * (c_max + g_max * scale)
+            tol_x, tol_y = KKT_TOL * scale, KKT_TOL * (c_max + g_max * scale)
             n_bad = 0
             for i in range(K):
-                if s[i] == _FREE:
+                if s[i] == FREE:
                     b = x[i] < -tol_x or (bounded and x[i] > upper[i] + tol_x)
                 else:
                     y = -c[i]
                     for j in range(K):
                         y += G[i, j] * x[j]
-                    b = y > tol_y if s[i] == _UPPER else y < -tol_y
+                    b = y > tol_y if s[i] == UPPER else y < -tol_y
                 bad[i] = b
                 n_bad += b
             if n_bad < best:
@@ -119,10 +119,10 @@ def block_pivoting(G, C, upper, bounded, state, X):
                 break
             for i in range(K):
                 if bad[i]:
-                    if s[i] == _FREE:
-                        s[i] = _LOWER if x[i] < 0.0 else _UPPER
+                    if s[i] == FREE:
+                        s[i] = LOWER if x[i] < 0.0 else UPPER
                     else:
-                        s[i] = _FREE
+                        s[i] = FREE
         for i in range(K):
             X[r, i] = x[i]
         stalled[r] = not solved

@@ -46,12 +46,12 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from . import _kernels_nnls
+from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER
 from ._reduced import free_solve
 from .exceptions import ConvergenceWarning
 
-LOWER, FREE, UPPER = 0, 1, 2
 _RIDGE = 1e-10  # relative ridge added to a rank-deficient G (see Gram)
-_TOL = 1e-11  # relative tolerance of the KKT tests
+_TOL = KKT_TOL  # relative tolerance of the KKT tests
 
 
 @dataclass(frozen=True, eq=False)

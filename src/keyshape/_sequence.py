@@ -15,8 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _kernels
-
-LOWER, FREE, UPPER = 0, 1, 2  # the state of a variable on a face of C
+from ._kernels_nnls import LOWER, UPPER  # the state of a variable on a face of C
 
 
 @dataclass(frozen=True, eq=False)
