@@ -125,11 +125,20 @@ def tracking_gaps(B: np.ndarray, rng) -> np.ndarray:
     return B
 
 
-CASES = {  # name: (smoothness, convex, with tracking gaps)
-    "smoothness 1": (1.0, False, False),
-    "smoothness 0.1 (default)": (0.1, False, False),
-    "smoothness 0.1, tracking gaps": (0.1, False, True),
-    "smoothness 0.1, convex": (0.1, True, False),
+def long_gaps(B: np.ndarray, rng=None) -> np.ndarray:
+    """``B`` with a 60-frame gap every 700 frames (half a second at 120 fps: still bridged)."""
+    B = B.copy()
+    for start in range(300, len(B) - 65, 700):
+        B[start : start + 60] = np.nan
+    return B
+
+
+CASES = {  # name: (smoothness, convex, gaps)
+    "smoothness 1": (1.0, False, None),
+    "smoothness 0.1 (default)": (0.1, False, None),
+    "smoothness 0.1, tracking gaps": (0.1, False, tracking_gaps),
+    "smoothness 0.1, 60-frame gaps": (0.1, False, long_gaps),
+    "smoothness 0.1, convex": (0.1, True, None),
 }
 
 
@@ -148,7 +157,7 @@ def bench_spacetime(sizes, clarabel_frames: int, m: int, k: int = 12, repeats: i
     for n in sizes:
         _, B = performance(A, n, np.random.default_rng(n), smooth=True)
         for case, (smoothness, convex, gaps) in CASES.items():
-            data = tracking_gaps(B, np.random.default_rng(n + 1)) if gaps else (0.6 * B if convex else B)
+            data = gaps(B, np.random.default_rng(n + 1)) if gaps else (0.6 * B if convex else B)
             for tol in (1e-7, 1e-4) if case == "smoothness 1" else (1e-7,):
                 t = best_time(lambda data=data, tol=tol, s=smoothness, c=convex: solve_spacetime(
                     A, data, smoothness=s, upper=1.0, convex=c, tol=tol), repeats)
