@@ -129,7 +129,7 @@ def solve_spacetime(
         Also require ``Σ_i w_{t,i} ≤ 1``.
     tol : float in (0, 1)
         Relative accuracy of the objective, proven by a duality gap. 1e-7 (the default) is
-        far below what shows in an animation; 1e-4 saves about 30 % of the time.
+        far below what shows in an animation; 1e-4 saves about a quarter of the time.
 
     Returns
     -------
