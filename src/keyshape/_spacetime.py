@@ -84,7 +84,7 @@ def admm(seq: Sequence, solver: EigenSolver, rho, Z, U, n_iter: int, alpha: floa
     linear step is one compiled pass (:func:`keyshape._kernels.admm_step`).
     """
     Z, U = np.array(Z, dtype=float, order="C"), np.array(U, dtype=float, order="C")
-    rho = np.broadcast_to(np.asarray(rho, dtype=float), (seq.n_frames,)).copy()
+    rho = np.ascontiguousarray(rho, dtype=float)
     C = np.ascontiguousarray(seq.C)
     R = C + rho[:, None] * (Z - U)
     W = np.empty_like(Z)
