@@ -47,12 +47,11 @@ def one_mode(mode: str, takes: Path, outdir: Path, workers: int | None) -> dict:
     from threadpoolctl import threadpool_limits
 
     start = time.perf_counter()
-    from keyshape.batch import SequentialRunner, batch
-    from keyshape.workflow import RunOptions
+    from keyshape.app import RunOptions, SequentialRunner, batch
 
     timings = {"import": time.perf_counter() - start}
     if mode == "ray":
-        from keyshape._ray import RayRunner
+        from keyshape.app import RayRunner
 
         t = time.perf_counter()
         runner = RayRunner(workers=workers).__enter__()

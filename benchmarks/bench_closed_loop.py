@@ -34,12 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
+from keyshape.app import discover_keys, solve_take
 from keyshape.containers import Rig, Track, blend
-from keyshape.correspond import Correspondence
-from keyshape.pipeline import discover_keys, solve_take
-from keyshape.propose import propose_mapping, propose_targets
-from keyshape.retarget import retarget
-from keyshape.rig import load_rig
+from keyshape.io.rig import load_rig
+from keyshape.targets import Correspondence, propose_mapping, propose_targets, retarget
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict-facekit"
 ARCHIVE = "ICT-FaceKit_FaceXModel_neutral_and_expressions.tar.xz"

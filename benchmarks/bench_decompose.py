@@ -1,10 +1,10 @@
 """Benchmark the decompose stage.
 
-1. Per-frame NNLS: :func:`keyshape.decompose.solve_nnls` against a Python loop of
+1. Per-frame NNLS: :func:`keyshape.decompose._solve.solve_nnls` against a Python loop of
    ``scipy.optimize.nnls`` (the reference), K = 8, 16, 24 keys, 100,000 frames. The scipy loop
    runs on a subset (5,000 frames by default) and is extrapolated linearly; the weights of
    that subset are compared.
-2. Spacetime solve: :func:`keyshape.decompose.solve_spacetime` at K = 12 (upper bound 1) in
+2. Spacetime solve: :func:`keyshape.decompose._solve.solve_spacetime` at K = 12 (upper bound 1) in
    frames per second: smoothness 1 and the product's default 0.1, with a tracker's gaps
    (5 % dropped frames, a 15-frame gap per 1,000) and with ``convex``; against Clarabel
    through qpsolvers on the same problem at a smaller T (the whole sequence as one sparse

@@ -1,6 +1,6 @@
 """Benchmark key selection (``keyshape keys``) against the number of frames.
 
-Peak memory (tracemalloc) and wall time of :func:`keyshape.keyshapes.find_keyshapes`
+Peak memory (tracemalloc) and wall time of :func:`keyshape.keyshapes._search.find_keyshapes`
 (``spa``, K = 12 per region, weights bounded by 1, both regions of the ``upper-lower``
 scheme) on synthetic MediaPipe-like takes of 478 landmarks in 3D, and the RMS
 reconstruction error of the keys it returns over every frame (% of the inter-ocular
@@ -10,7 +10,7 @@ Paths measured, each size in a fresh process:
 
 ``pool``
     the current code: every frame is a candidate up to ``MAX_CANDIDATES`` (2048), beyond
-    that the keys are searched among a pool of 2048 frames (:func:`keyshape._select.pool`);
+    that the keys are searched among a pool of 2048 frames (:func:`keyshape.keyshapes._select.pool`);
 ``all``
     the current code with no pool (``MAX_CANDIDATES`` raised above the number of frames):
     the frames × frames search, which picks the same keys as before the pool existed;
@@ -105,7 +105,7 @@ def synthetic_take(n_frames: int, seed: int = 0, noise: float = 0.15):
 
 def measure(n_frames: int, path: str) -> dict:
     """Select the keys of one synthetic take; peak traced memory, wall time and RMS errors."""
-    from keyshape import keyshapes
+    from keyshape.keyshapes import _search as keyshapes
     from keyshape.metrics import face_scale
 
     track, regions, neutral = synthetic_take(n_frames)
@@ -133,7 +133,7 @@ def measure(n_frames: int, path: str) -> dict:
 
 def squared_error(X: np.ndarray, rows: np.ndarray, *, upper: float, block: int = 8192) -> float:
     """``Σ_f min_{0 <= w <= upper} |x_f − w X[rows]|²`` over every row of ``X``, by blocks (any
-    keyshape version: only :func:`keyshape.decompose.solve_nnls`)."""
+    keyshape version: only :func:`keyshape.decompose._solve.solve_nnls`)."""
     from keyshape.decompose import solve_nnls
 
     basis, total = X[rows], 0.0

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from keyshape.align import align, choose_neutral, procrustes
+from keyshape.alignment import align, choose_neutral, procrustes
 from keyshape.containers import Track
 from keyshape.datasets import make_performance
 from keyshape.exceptions import DegenerateFrameWarning, InputError, KeyshapeError

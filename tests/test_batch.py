@@ -17,14 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from keyshape.batch import (
-    BatchRow,
-    SequentialRunner,
-    find_takes,
-    format_table,
-    is_complete,
-    make_runner,
-)
+from keyshape.app import BatchRow, SequentialRunner, find_takes, format_table, is_complete, make_runner
 from keyshape.cli import main
 from keyshape.exceptions import InputError, MissingDependencyError
 
@@ -234,7 +227,7 @@ def test_find_takes_files_and_folders(tmp_path):
 
 
 def test_without_ray_runs_sequentially(monkeypatch):
-    import keyshape._ray as kray
+    import keyshape.app._ray as kray
 
     monkeypatch.setattr(kray, "ray_available", lambda: False)
     assert isinstance(make_runner(), SequentialRunner)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from keyshape.capture import track_video
+from keyshape.capture.filters import gap_report
 from keyshape.cli import main
 from keyshape.exceptions import NoFaceError
-from keyshape.filters import gap_report
 from keyshape.io.weights_csv import load_weights_csv
 
 from conftest import read_frames, write_video

@@ -12,9 +12,9 @@ import pytest
 from keyshape.cli import main
 from keyshape.io.gltf import read_glb_animation
 from keyshape.io.keys_json import load_keys
+from keyshape.io.rig import load_rig, save_obj_folder
 from keyshape.io.track import load_track
 from keyshape.io.weights_csv import load_weights_csv
-from keyshape.rig import load_rig, save_obj_folder
 
 from gltf_validator import validate
 
@@ -223,7 +223,7 @@ def test_run_auto_targets_onto_a_human_like_rig(demo_clip, demo_out, tmp_path):
     anim = read_glb_animation(out / "animation.glb")
     assert anim.weights.shape[0] == 96 and anim.weights.max() > 0.05
     # the proposal is saved beside the outputs, and it is exactly what drove the character
-    from keyshape.retarget import Mapping, retarget
+    from keyshape.targets import Mapping, retarget
 
     mapping = Mapping.from_file(out / "map.json", targets=list(anim.names))
     driven = retarget(load_weights_csv(out / "weights.csv"), mapping)

@@ -34,7 +34,7 @@ def bench():
 def ict(bench, request, tmp_path_factory):
     if not ICT.is_file():
         pytest.skip(f"{ICT} not present (shared data)")
-    from keyshape.rig import load_rig
+    from keyshape.io.rig import load_rig
 
     cache = getattr(request.config, "cache", None)
     base = cache.mkdir("ict-facekit") if cache is not None else tmp_path_factory.mktemp("ict")

@@ -7,15 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from keyshape.correspond import (
-    Correspondence,
-    find_correspondence,
-    mesh_components,
-    read_correspondence,
-    snap_to_surface,
-    weld_vertices,
-)
 from keyshape.exceptions import InputError, RigError
+from keyshape.mesh import mesh_components, snap_to_surface, weld_vertices
+from keyshape.targets import Correspondence, find_correspondence, read_correspondence
 
 
 def grid(side=6, size=1.0):
@@ -153,7 +147,7 @@ def test_components_are_numbered_by_size():
 
 @pytest.fixture(scope="module")
 def head():
-    from keyshape.characters import stylised_head
+    from keyshape.targets import stylised_head
 
     return stylised_head()
 

@@ -18,12 +18,12 @@ from scipy.spatial.transform import Rotation
 from keyshape.cli import main
 from keyshape.containers import Poses, Weights
 from keyshape.exceptions import InputError
-from keyshape.io.export import Format, export, format_of
+from keyshape.io import Format, export, format_of
 from keyshape.io.gltf import read_glb_animation
 from keyshape.io.livelink import LIVELINK_NAMES, read_livelink_csv
+from keyshape.io.rig import load_rig
 from keyshape.io.weights_csv import load_weights_csv, save_weights_csv
-from keyshape.retarget import Mapping, retarget
-from keyshape.rig import load_rig
+from keyshape.targets import Mapping, retarget
 
 from gltf_validator import validate
 

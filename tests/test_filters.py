@@ -1,6 +1,6 @@
 import numpy as np
 
-from keyshape.filters import find_gaps, gap_report, hold_neutral, one_euro
+from keyshape.capture.filters import find_gaps, gap_report, hold_neutral, one_euro
 
 
 def test_find_gaps():

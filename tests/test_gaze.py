@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from keyshape.gaze import EYEBALL_RATIO, estimate_gaze
+from keyshape.capture.gaze import EYEBALL_RATIO, estimate_gaze
 from keyshape.schemes import mediapipe_scheme
 
 EYES = {"right": ((100.0, 100.0), (130.0, 100.0)), "left": ((180.0, 100.0), (150.0, 100.0))}  # outer, inner

@@ -9,7 +9,7 @@ from keyshape.containers import KeyShapes, Poses, Rig, Weights
 from keyshape.exceptions import InputError, RigError
 from keyshape.io import gltf as gltf_io
 from keyshape.io.gltf import read_glb_animation, write_glb
-from keyshape.rig import load_rig, rig_from_keyshapes
+from keyshape.io.rig import load_rig, rig_from_keyshapes
 from keyshape.schemes import face_triangles
 
 from gltf_validator import validate

@@ -4,12 +4,11 @@ selected key sets, the unit is the inter-ocular distance; on the real clip spa w
 import numpy as np
 import pytest
 
-from keyshape import keyshapes
-from keyshape.align import align, choose_neutral
+from keyshape.alignment import align, choose_neutral
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
-from keyshape.kcurve import METHODS, KCurve, error_vs_k
-from keyshape.keyshapes import choose_n_keys, find_keyshapes
+from keyshape.keyshapes import CURVE_METHODS, KCurve, choose_n_keys, error_vs_k, find_keyshapes
+from keyshape.keyshapes import _search as keyshapes
 from keyshape.metrics import face_scale, reconstruction_error
 
 
@@ -112,14 +111,14 @@ def test_inter_ocular_unit_for_a_68_landmark_face():
 
 
 def test_table_rows_and_plot(curve, tmp_path):
-    from keyshape.plots import error_vs_k as plot
+    from keyshape.report.plots import error_vs_k as plot
 
     assert isinstance(curve, KCurve) and curve.ks.tolist() == list(range(1, 16))
     rows = list(curve.rows())
-    assert len(rows) == 2 * len(METHODS) * 15
+    assert len(rows) == 2 * len(CURVE_METHODS) * 15
     assert rows[0] == ("upper", "pca", 1, curve.errors["pca"]["upper"][0])
     table = curve.table
-    assert set(table) == set(METHODS) and table["spa"]["lower"][0] is curve.ks
+    assert set(table) == set(CURVE_METHODS) and table["spa"]["lower"][0] is curve.ks
     assert plot(table, tmp_path / "k.png", unit=curve.unit).stat().st_size > 1000
 
 
@@ -152,7 +151,7 @@ def test_spa_beats_the_papers_methods_on_real_footage(real_track):
         curve = error_vs_k(aligned, regions=regions, neutral_frame=neutral, upper=upper)
         assert curve.unit == "% inter-ocular"
         for region in regions:
-            e = {m: curve.errors[m][region][3:] for m in METHODS}  # K = 4 .. 30
+            e = {m: curve.errors[m][region][3:] for m in CURVE_METHODS}  # K = 4 .. 30
             assert (e["spa"] < e["spread"]).all() and (e["spa"] < e["hull"]).all(), (upper, region, e)
             assert (curve.errors["pca"][region] <= curve.errors["spa"][region]).all()
     choices = choose_n_keys(aligned, regions=regions, neutral_frame=neutral, upper=1.0)

@@ -4,12 +4,12 @@ automatic K, determinism, validation, long takes (a pool of candidates)."""
 import numpy as np
 import pytest
 
-from keyshape import _select, keyshapes
-from keyshape.align import align
+from keyshape.alignment import align
 from keyshape.containers import KeyShapes, Track
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
-from keyshape.keyshapes import MAX_CANDIDATES, MAX_KEYS, METHODS, KChoice, choose_n_keys, find_keyshapes
+from keyshape.keyshapes import MAX_CANDIDATES, MAX_KEYS, METHODS, KChoice, _select, choose_n_keys, find_keyshapes
+from keyshape.keyshapes import _search as keyshapes
 from keyshape.metrics import face_scale, reconstruction_error
 
 

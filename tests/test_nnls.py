@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from keyshape import _kernels_nnls, _nnls
+from keyshape.decompose import _kernels_nnls, _nnls
 
 
 def bounded_reference(A, B, upper):

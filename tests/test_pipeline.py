@@ -5,9 +5,9 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
+from keyshape.app import discover_keys, solve_take
 from keyshape.containers import Track
 from keyshape.datasets import make_performance
-from keyshape.pipeline import discover_keys, solve_take
 
 
 @pytest.fixture(scope="module")

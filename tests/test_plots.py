@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from keyshape import plots
-from keyshape.align import align
+from keyshape.alignment import align
 from keyshape.exceptions import InputError
-from keyshape.report import fit_quality
+from keyshape.report import fit_quality, plots
 
 from test_render import synthetic_take
 

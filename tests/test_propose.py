@@ -11,11 +11,10 @@ from test_transfer import head_keys, sheet, to_image
 
 from keyshape.cli import main
 from keyshape.containers import KeyShapes, Rig, Weights
-from keyshape.correspond import Correspondence, mesh_components
 from keyshape.exceptions import InputError, RigError
-from keyshape.propose import auto_targets, propose_mapping, propose_targets, proposer
-from keyshape.retarget import Mapping, retarget
-from keyshape.rig import load_rig
+from keyshape.io.rig import load_rig
+from keyshape.mesh import mesh_components
+from keyshape.targets import Correspondence, Mapping, auto_targets, propose_mapping, propose_targets, proposer, retarget
 
 ROBOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "robot-expressive" / "RobotExpressive.glb"
 
@@ -107,7 +106,7 @@ def test_a_rig_without_targets_is_for_the_transfer_route():
 
 @pytest.fixture(scope="module")
 def head():
-    from keyshape.characters import stylised_head
+    from keyshape.targets import stylised_head
 
     return stylised_head()
 
@@ -137,7 +136,7 @@ def test_auto_targets_default_character(mediapipe_keys):
     assert auto.route == "transfer" and auto.rig.names == mediapipe_keys.names
     assert auto.mapping.matrix.tolist() == [[1.0, 0.0], [0.0, 1.0]]
     assert auto.rig.n_vertices > 10000  # a decent resolution
-    from keyshape.characters import default_character
+    from keyshape.targets import default_character
 
     np.testing.assert_allclose(default_character(mediapipe_keys).deltas, auto.rig.deltas)
 
@@ -168,7 +167,7 @@ def test_the_default_character_needs_mediapipe_keys():
 
 
 def test_proposer_starts_the_sculpt_kit(head, mediapipe_keys):
-    from keyshape.sculpt import sculpt_targets
+    from keyshape.app import sculpt_targets
 
     kit = sculpt_targets(mediapipe_keys, head.rig, propose=proposer(correspondence=head.correspondence()))
     assert kit.names == mediapipe_keys.names and np.abs(kit.deltas).max() > 0.003
@@ -281,7 +280,7 @@ def test_propose_command_default_character(mediapipe_keys, tmp_path, capsys):
 
 def test_propose_command_mapping_onto_an_obj_rig(head, mediapipe_keys, tmp_path, capsys):
     from keyshape.io.keys_json import save_keys
-    from keyshape.rig import save_obj_folder
+    from keyshape.io.rig import save_obj_folder
 
     own = propose_targets(mediapipe_keys, head.rig, correspondence=head.correspondence())
     folder = save_obj_folder(Rig(own.vertices, own.faces, own.deltas, ("browsUp", "jawDrop")), tmp_path / "rig")
@@ -314,7 +313,7 @@ def test_propose_command_errors(mediapipe_keys, tmp_path, capsys, extra, message
 
 
 def test_canonical_face_is_read_from_the_vendored_model():
-    from keyshape.characters import canonical_face
+    from keyshape.targets import canonical_face
 
     vertices, faces = canonical_face()
     assert vertices.shape == (468, 3) and faces.shape == (898, 3)
@@ -323,7 +322,7 @@ def test_canonical_face_is_read_from_the_vendored_model():
 
 
 def test_stylised_head_is_deterministic_and_well_formed(head):
-    from keyshape.characters import stylised_head
+    from keyshape.targets import stylised_head
 
     again = stylised_head.__wrapped__()  # a fresh build, not the cached one
     np.testing.assert_array_equal(again.rig.vertices, head.rig.vertices)
@@ -342,7 +341,7 @@ def test_stylised_head_is_deterministic_and_well_formed(head):
 
 def test_stylised_head_looks_unlike_a_person(head):
     """Bigger eyes than the canonical face it is built from: a caricature, not the actor."""
-    from keyshape.characters import canonical_face
+    from keyshape.targets import canonical_face
 
     face = canonical_face()[0] * 0.01
     rig = head.rig.vertices

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from keyshape import render
-from keyshape.align import align
+from keyshape.alignment import align
 from keyshape.containers import Rig, Weights
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
 from keyshape.keyshapes import find_keyshapes
 from keyshape.metrics import nonnegative_fit
 from keyshape.render import RenderFallbackWarning, frame_points, make_renderer
+from keyshape.render import _backend as render
 from keyshape.render.camera import BACKGROUND
 from keyshape.render.encode import VideoWriter, rate_of
 from keyshape.render.raster import NumpyRenderer, rasterize
@@ -45,7 +45,7 @@ def synthetic_take(*, n_frames: int = 48, n_missing: int = 3, rotation_deg: floa
         targets = (aligned.points[ok][:, lm] - keys.neutral[lm]).reshape(ok.sum(), -1)
         values[np.ix_(ok, k)] = nonnegative_fit(targets, keys.deltas[k][:, lm].reshape(len(k), -1))
     weights = Weights(values, keys.names, perf.track.fps)
-    from keyshape.rig import rig_from_keyshapes
+    from keyshape.io.rig import rig_from_keyshapes
 
     rig = rig_from_keyshapes(keys, Delaunay(keys.neutral[:, :2]).simplices.astype(np.int64))
     return perf, keys, weights, poses, rig

@@ -9,7 +9,7 @@ import pytest
 from keyshape.cli import main
 from keyshape.datasets import make_performance
 from keyshape.io.track import save_track
-from keyshape.kcurve import METHODS
+from keyshape.keyshapes import CURVE_METHODS as METHODS
 
 
 @pytest.fixture(scope="module")

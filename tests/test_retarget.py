@@ -3,7 +3,7 @@ import pytest
 
 from keyshape.containers import Rig, Weights
 from keyshape.exceptions import InputError, RigError
-from keyshape.retarget import Mapping, retarget
+from keyshape.targets import Mapping, retarget
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import pytest
 from keyshape.containers import KeyShapes, Rig, Weights
 from keyshape.exceptions import InputError, RigError
 from keyshape.io.gltf import write_glb
-from keyshape.rig import load_rig, read_obj, rig_from_keyshapes, save_obj_folder
+from keyshape.io.rig import load_rig, read_obj, rig_from_keyshapes, save_obj_folder
 
 ROBOT = Path("/work/shared/data/robot-expressive/RobotExpressive.glb")
 
@@ -203,7 +203,7 @@ def test_rig_from_2d_keyshapes_and_bad_faces():
 
 # ---------------------------------------------------------------- OBJ details, units, dispatch
 
-from keyshape.rig import _read_obj_checked, _read_obj_fast, parse_unit  # noqa: E402
+from keyshape.io.rig import _read_obj_checked, _read_obj_fast, parse_unit  # noqa: E402
 
 
 def test_fast_and_checked_obj_readers_agree(tmp_path):

@@ -7,15 +7,15 @@ import numpy as np
 import pygltflib
 import pytest
 
+from keyshape.app import contact_sheet, sculpt_targets, write_sculpt_kit
 from keyshape.cli import main
 from keyshape.containers import KeyShapes, Rig, Track, Weights
 from keyshape.exceptions import InputError, RigError
 from keyshape.io.gltf import read_glb_animation, read_meshes, write_glb, write_gltf_targets
 from keyshape.io.keys_json import save_keys
+from keyshape.io.rig import load_rig
 from keyshape.io.track import save_track
 from keyshape.io.weights_csv import save_weights_csv
-from keyshape.rig import load_rig
-from keyshape.sculpt import contact_sheet, sculpt_targets, write_sculpt_kit
 
 from conftest import write_video
 from gltf_validator import validate
@@ -265,7 +265,7 @@ print("VALUES " + json.dumps({"names": [k.name for k in blocks[1:]], "values": v
 @pytest.mark.skipif(not BLENDER_PYTHON, reason="set KEYSHAPE_BPY_PYTHON to a Python with bpy (pip install bpy)")
 @pytest.mark.parametrize("suffix", [".glb", ".usda"])
 def test_blender_plays_the_exported_weights(head_obj, tmp_path, suffix):
-    from keyshape.io.export import export
+    from keyshape.io import export
 
     neutral = load_rig(head_obj, unit=0.01)
     rig = _artist(Rig(neutral.vertices, neutral.faces, np.zeros((3, neutral.n_vertices, 3)), ("a", "b", "c")))

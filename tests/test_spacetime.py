@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy import sparse
 from scipy.linalg import solveh_banded
 
-from keyshape import _activeset, _kernels, _sequence, _spacetime
+from keyshape.decompose import _activeset, _kernels, _sequence, _spacetime
 
 # --------------------------------------------------------------------------- helpers
 

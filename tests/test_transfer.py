@@ -5,14 +5,9 @@ import numpy as np
 import pytest
 
 from keyshape.containers import KeyShapes
-from keyshape.correspond import Correspondence
 from keyshape.exceptions import RigError
 from keyshape.schemes import resolve_regions
-from keyshape.transfer import (
-    feature_groups,
-    landmark_motion,
-    transfer_expressions,
-)
+from keyshape.targets import Correspondence, feature_groups, landmark_motion, transfer_expressions
 
 PX = 2000.0  # pixels per metre of the synthetic actor
 
@@ -46,7 +41,7 @@ def sheet_keys(vertices, landmark_vertices, deltas, *, regions=None, dims=3):
 
 @pytest.fixture(scope="module")
 def head():
-    from keyshape.characters import stylised_head
+    from keyshape.targets import stylised_head
 
     return stylised_head()
 

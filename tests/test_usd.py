@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from keyshape.containers import Poses, Rig, Weights
 from keyshape.exceptions import InputError, MissingDependencyError, RigError
-from keyshape.rig import load_rig
+from keyshape.io.rig import load_rig
 
 pxr = pytest.importorskip("pxr", reason="usd-core not installed (pip install usd-core)")
 from pxr import Usd, UsdGeom, UsdSkel  # noqa: E402

@@ -203,7 +203,7 @@ def test_view_command(small_take):
 
 
 def test_view_command_falls_back_to_a_free_port(small_take, monkeypatch):
-    from keyshape.commands import view
+    from keyshape.cli import view
 
     with _Served(small_take) as busy:
         monkeypatch.setattr(view, "DEFAULT_PORT", busy.server_address[1])

@@ -4,13 +4,22 @@ Implements Chuang & Bregler, *Performance Driven Facial Animation using Blendsha
 Interpolation* (Stanford CS-TR-2002-02): track a face, discover key shapes (real frames),
 write every frame as a non-negative blend of them, and drive any character with the weights.
 
-The pipeline, one module per stage::
+The pipeline, one subpackage per stage, one function per stage here::
 
-    capture.track_video  ->  align.align  ->  keyshapes.find_keyshapes  ->  decompose.solve_weights
-        ->  retarget.retarget  ->  io.export.export        (render / report / viewer to see it)
+    track  ->  align  ->  find_keyshapes  ->  solve_weights  ->  retarget  ->  export
+    capture/   alignment/   keyshapes/      decompose/       targets/      io/
+                                             (render/, report/ and viewer/ to see it; app/ runs it all)
 
-The stage functions are imported on first use, so ``import keyshape`` stays light
-(``keyshape.align`` and ``keyshape.retarget`` are the modules of those stages).
+>>> import keyshape as ks
+>>> perf = ks.make_performance(n_frames=80, random_state=0)
+>>> aligned, poses = ks.align(perf.track, reference=perf.neutral, stable=perf.stable)
+>>> keys = ks.find_keyshapes(aligned, regions=perf.regions, n_keys=2, neutral_frame=perf.neutral_frame)
+>>> ks.solve_weights(aligned, keys).values.shape
+(80, 4)
+>>> ks.KeyShapeModel(2, regions=perf.regions, stable=perf.stable).fit(perf.track).transform(perf.track).values.shape
+(80, 4)
+
+The stage functions are imported on first use, so ``import keyshape`` stays light.
 """
 
 from importlib import import_module
@@ -21,11 +30,20 @@ from .exceptions import KeyshapeError
 __version__ = "0.1.0"
 
 _LAZY = {
-    "track_video": "capture", "choose_neutral": "align",
-    "find_keyshapes": "keyshapes", "solve_weights": "decompose", "discover_keys": "pipeline",
-    "solve_take": "pipeline", "load_rig": "rig", "Mapping": "retarget",
-    "export": "io.export", "render_preview": "render", "write_take_extras": "report",
-    "run_take": "workflow", "make_performance": "datasets", "estimate_gaze": "gaze",
+    # the stage verbs, in pipeline order
+    "track": ("capture", "track_video"), "track_video": ("capture", "track_video"),
+    "align": ("alignment", "align"), "choose_neutral": ("alignment", "choose_neutral"),
+    "find_keyshapes": ("keyshapes", "find_keyshapes"), "error_vs_k": ("keyshapes", "error_vs_k"),
+    "solve_weights": ("decompose", "solve_weights"),
+    "retarget": ("targets", "retarget"), "Mapping": ("targets", "Mapping"),
+    "propose_targets": ("targets", "propose_targets"), "propose_mapping": ("targets", "propose_mapping"),
+    "auto_targets": ("targets", "auto_targets"),
+    "load_rig": ("io", "load_rig"), "export": ("io", "export"),
+    "render_preview": ("render", "render_preview"), "write_take_extras": ("report", "write_take_extras"),
+    # takes end to end
+    "discover_keys": ("app", "discover_keys"), "solve_take": ("app", "solve_take"),
+    "run_take": ("app", "run_take"), "KeyShapeModel": ("app", "KeyShapeModel"),
+    "estimate_gaze": ("capture", "estimate_gaze"), "make_performance": ("datasets", "make_performance"),
 }
 
 # *_LAZY adds its keys (all str). Ruff cannot see that (PLE0604); listed literally they would be
@@ -33,14 +51,18 @@ _LAZY = {
 __all__ = ["Track", "Poses", "KeyShapes", "Weights", "Rig", "blend", "KeyshapeError", "__version__",  # noqa: PLE0604
            *_LAZY]
 
-
-_STAGES = ("capture", "align", "keyshapes", "decompose", "retarget", "rig", "io", "render", "report",
-           "pipeline", "workflow", "schemes", "filters", "gaze", "metrics", "datasets")
+_SUBPACKAGES = ("capture", "alignment", "keyshapes", "decompose", "targets", "io", "render", "report", "app",
+                "cli", "viewer", "schemes", "metrics", "mesh", "datasets", "defaults")
 
 
 def __getattr__(name: str):
     if name in _LAZY:
-        return getattr(import_module(f".{_LAZY[name]}", __name__), name)
-    if name in _STAGES:
+        module, attribute = _LAZY[name]
+        return getattr(import_module(f".{module}", __name__), attribute)
+    if name in _SUBPACKAGES:
         return import_module(f".{name}", __name__)
     raise AttributeError(f"module 'keyshape' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted({*globals(), *_LAZY, *_SUBPACKAGES})

@@ -38,3 +38,7 @@ class ConvergenceWarning(UserWarning):
 
 class RenderFallbackWarning(RuntimeWarning):
     """OpenGL (moderngl on EGL) is unavailable: the slow numpy rasteriser is used instead."""
+
+
+class NotFittedError(KeyshapeError, AttributeError):
+    """An estimator used before ``fit`` (as scikit-learn's ``NotFittedError``)."""

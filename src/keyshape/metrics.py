@@ -53,8 +53,8 @@ def reconstruction_error(
     Examples
     --------
     >>> from keyshape.datasets import make_performance
-    >>> from keyshape.align import align
-    >>> from keyshape.keyshapes import find_keyshapes
+    >>> from keyshape.alignment._procrustes import align
+    >>> from keyshape.keyshapes._search import find_keyshapes
     >>> perf = make_performance(noise=0.0)
     >>> aligned, _ = align(perf.track, reference=perf.neutral, stable=perf.stable)
     >>> keys = find_keyshapes(aligned, regions=perf.regions, n_keys=2, neutral_frame=perf.neutral_frame)
@@ -76,7 +76,7 @@ def face_scale(neutral: np.ndarray) -> tuple[float, str]:
     The inter-ocular distance (outer eye corners, :func:`keyshape.schemes.eye_corners`,
     in the image plane) when the landmark scheme has eye corners; otherwise twice the RMS
     distance of the landmarks from their centroid (image plane), "face size". The same
-    lengths as the take report's (:func:`keyshape.report.face_scale`).
+    lengths as the take report's (:func:`keyshape.report._take.face_scale`).
 
     Parameters
     ----------

@@ -91,7 +91,7 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
         that move few vertices are stored as sparse accessors.
     weights : Weights
         ``values (n_frames, n_targets)`` named exactly ``rig.names``, in that order
-        (use :func:`keyshape.retarget.retarget` first). NaN frames are written as 0.
+        (use :func:`keyshape.targets._mapping.retarget` first). NaN frames are written as 0.
         With no frames, no animation is written (a plain rig, e.g. for sculpting).
     poses : Poses, optional
         Head pose per frame in image convention (2D or 3D rotations, ``n_frames`` as

@@ -21,7 +21,7 @@ from ..containers import KeyShapes, Poses, Rig, Track, Weights
 from ..exceptions import InputError
 from ..io.atomic import atomic_path
 from ..schemes import mediapipe_scheme
-from . import make_renderer
+from ._backend import make_renderer
 from .camera import frame_points
 from .draw import OTHER_COLOUR, WeightStrip, caption, draw_landmarks, landmark_colours, region_palette, resize_to_height
 from .encode import VideoWriter
@@ -82,7 +82,7 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
         height, kept between 360 and 720 pixels.
     strip_height : int, keyword-only
     backend : "auto", "gl" or "numpy", keyword-only
-        See :func:`keyshape.render.make_renderer`.
+        See :func:`keyshape.render._backend.make_renderer`.
     progress : bool, keyword-only
 
     Returns

@@ -1,0 +1,337 @@
+"""Many takes at once: ``keyshape batch``, on local cores or a Ray cluster, resumable.
+
+Every take goes to ``OUTDIR/<take stem>/`` exactly as ``keyshape run`` would write it
+(:func:`keyshape.app._run.run_take`, staged and moved in only on success). A take whose
+``take.json`` and the files it lists already exist is skipped; a take that fails is reported
+with its one-line error and the others go on. With a shared key set, every take is tracked
+first, one key set is discovered across all of them (``OUTDIR/keys.json``) and every take is
+solved against it, without tracking it again.
+
+The work runs on Ray when it is installed (:mod:`keyshape.app._ray`), otherwise - or with
+``sequential=True`` - in this process, one take after the other, with the same outputs.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Self
+
+from ..exceptions import InputError, KeyshapeError
+from ._run import RunOptions
+
+__all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", "is_complete"]
+
+VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mpg", ".mpeg", ".wmv"})
+SUMMARY_FIELDS = ("take", "frames", "detection_rate", "keys", "error_pct", "status", "seconds", "error")
+TRACKS = ".tracks"  # OUTDIR/.tracks/<stem>.npz: tracks of the shared-keys pass, kept until solved
+
+
+@dataclass(frozen=True)
+class BatchRow:
+    """One take's line of the summary: status is "ok", "skipped" or "failed"."""
+
+    take: str
+    frames: int | None = None
+    detection_rate: float | None = None
+    keys: int | None = None  # key shapes over all regions
+    error_pct: float | None = None
+    status: str = "ok"
+    seconds: float = 0.0
+    error: str = ""
+
+    def as_csv(self) -> dict:
+        def num(value, fmt):
+            return "" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt)
+
+        return {"take": self.take, "frames": num(self.frames, "d"),
+                "detection_rate": num(self.detection_rate, ".4f"), "keys": num(self.keys, "d"),
+                "error_pct": num(self.error_pct, ".3f"), "status": self.status,
+                "seconds": f"{self.seconds:.1f}", "error": self.error}
+
+
+# -- finding the takes ---------------------------------------------------------------------------
+
+def find_takes(paths: Sequence[str | Path]) -> list[Path]:
+    """The videos named by ``paths``: files as given, folders as the videos directly inside them.
+
+    Raises InputError for a missing path, a folder without videos, or two takes with the same
+    stem (they would share an output folder).
+    """
+    takes: list[Path] = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES
+                           and not p.name.startswith("."))
+            if not found:
+                raise InputError(f"{path}: no videos in this folder ({', '.join(sorted(VIDEO_SUFFIXES))})")
+            takes.extend(found)
+        elif path.is_file():
+            takes.append(path)
+        else:
+            raise InputError(f"{path}: no such file or folder")
+    return _check_stems(takes)
+
+
+def _check_stems(takes: list[Path]) -> list[Path]:
+    seen: dict[str, Path] = {}
+    for take in takes:
+        if take.stem in seen and seen[take.stem].resolve() != take.resolve():
+            raise InputError(f"two takes would share the output folder {take.stem!r}: "
+                             f"{seen[take.stem]} and {take}; rename one")
+        seen.setdefault(take.stem, take)
+    return list(seen.values())
+
+
+def is_complete(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a finished take: ``take.json`` and every file it lists."""
+    folder = Path(folder)
+    try:
+        info = json.loads((folder / "take.json").read_text())
+    except (OSError, ValueError):
+        return False
+    files = info.get("files") if isinstance(info, dict) else None
+    return isinstance(files, dict) and all((folder / str(name)).is_file() for name in files.values())
+
+
+# -- the work of one take (runs in a worker) ------------------------------------------------------
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or exc.__class__.__name__
+    return text if isinstance(exc, KeyshapeError) else f"{exc.__class__.__name__}: {text}"
+
+
+def _row(summary) -> BatchRow:
+    return BatchRow(summary.take, summary.n_frames, summary.detection_rate,
+                    sum(summary.keys_per_region.values()), summary.error_pct, "ok", summary.seconds)
+
+
+def _guarded(name: str, work: Callable[[], BatchRow]) -> BatchRow:
+    """Run ``work``; any error becomes a failed row with its one-line message."""
+    start = time.perf_counter()
+    try:
+        return work()
+    except Exception as exc:  # noqa: BLE001 - one take's failure must not stop the batch
+        return BatchRow(name, status="failed", seconds=time.perf_counter() - start, error=_one_line(exc))
+
+
+def _run_task(job: tuple[Path, Path, RunOptions, Path | None]) -> BatchRow:
+    """Worker: one take start to finish (from its cached track when there is one)."""
+    video, outdir, options, track_path = job
+    if track_path is None:
+        from ._run import run_take
+
+        return _guarded(video.name, lambda: _row(run_take(video, outdir, options, progress=False)))
+    return _guarded(video.name, lambda: _row(_run_tracked(video, outdir, options, track_path)))
+
+
+def _track_task(job: tuple[Path, Path, dict]) -> BatchRow:
+    """Worker: track one take into ``track_path`` (the shared-keys pass)."""
+    video, track_path, capture = job
+
+    def work() -> BatchRow:
+        from ..capture import track_video
+        from ..io.track import save_track
+
+        start = time.perf_counter()
+        track = track_video(video, progress=False, **capture)
+        save_track(track, track_path)
+        return BatchRow(video.name, track.n_frames, float(track.valid.mean()), status="tracked",
+                        seconds=time.perf_counter() - start)
+
+    return _guarded(video.name, work)
+
+
+def _run_tracked(video: Path, outdir: Path, options: RunOptions, track_path: Path):
+    """:func:`keyshape.app._run.run_take` on a track already made (the shared-keys pass)."""
+    from ..io.track import load_track
+    from ._run import run_take
+
+    return run_take(video, outdir, options, progress=False, track=load_track(track_path))
+
+
+# -- runners --------------------------------------------------------------------------------------
+
+class SequentialRunner:
+    """The runner without Ray: every task in this process, in order."""
+
+    name = "sequential"
+    n_workers = 1
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def map(self, fn: Callable, items: Iterable) -> Iterator[tuple[object, object]]:
+        for item in items:
+            yield item, fn(item)
+
+
+def make_runner(*, sequential: bool = False, workers: int | None = None, address: str | None = None):
+    """Ray when asked for or available, else the sequential runner.
+
+    ``address`` without Ray installed raises MissingDependencyError (it cannot be honoured).
+    """
+    from ._ray import RayRunner, ray_available
+
+    if sequential:
+        if address is not None:
+            raise InputError("--sequential and --address exclude each other")
+        return SequentialRunner()
+    if address is None and not ray_available():
+        return SequentialRunner()
+    return RayRunner(workers=workers, address=address)
+
+
+# -- the batch ------------------------------------------------------------------------------------
+
+def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions | None = None, *,
+          shared_keys: bool = False, runner=None, on_row: Callable[[BatchRow], None] | None = None
+          ) -> list[BatchRow]:
+    """Process every take into ``outdir/<stem>/``; return one row per take, in input order.
+
+    Parameters
+    ----------
+    takes : video files and/or folders of videos (see :func:`find_takes`)
+    outdir : output folder; ``summary.csv`` is written there (atomically), and with
+        ``shared_keys`` the common key set ``keys.json``
+    options : RunOptions of every take; ``options.keys`` reuses one key set for all
+    shared_keys : discover one key set across all takes, then solve every take against it
+    runner : :func:`make_runner`'s result (default: Ray if installed, else sequential)
+    on_row : called with each take's row as it finishes (for progress lines)
+    """
+    videos, outdir = find_takes(takes), Path(outdir)
+    options = options if options is not None else RunOptions()
+    if shared_keys and options.keys is not None:
+        raise InputError("--keys and --shared-keys exclude each other: give one key set or discover one")
+    outdir.mkdir(parents=True, exist_ok=True)
+    rows = {v: _skipped_row(v, outdir) for v in videos if is_complete(outdir / v.stem)}
+    pending = [v for v in videos if v not in rows]
+    report = on_row or (lambda row: None)
+    for row in rows.values():
+        report(row)
+    if pending:  # a finished batch does not start Ray
+        with runner if runner is not None else make_runner() as active:
+            rows.update(_process(pending, outdir, options, shared_keys, active, report))
+    ordered = [rows[v] for v in videos]
+    write_summary(ordered, outdir / "summary.csv")
+    return ordered
+
+
+def _process(videos: list[Path], outdir: Path, options: RunOptions, shared_keys: bool, runner,
+             report) -> dict[Path, BatchRow]:
+    rows: dict[Path, BatchRow] = {}
+    tracks: dict[Path, Path] = {}
+    if shared_keys:
+        options, tracks, failed = _shared_key_set(videos, outdir, options, runner)
+        for video, row in failed.items():
+            rows[video] = row
+            report(row)
+    jobs = [(v, outdir / v.stem, options, tracks.get(v)) for v in videos if v not in rows]
+    for job, row in runner.map(_run_task, jobs):
+        rows[job[0]] = row if isinstance(row, BatchRow) else _crashed(job[0], row)
+        report(rows[job[0]])
+        if rows[job[0]].status == "ok" and job[3] is not None:
+            job[3].unlink(missing_ok=True)
+    if tracks and not any((outdir / TRACKS).iterdir()):
+        (outdir / TRACKS).rmdir()
+    return rows
+
+
+def _crashed(video: Path, exc: BaseException) -> BatchRow:
+    return BatchRow(video.name, status="failed", error=f"worker lost: {_one_line(exc)}")
+
+
+def _shared_key_set(videos: list[Path], outdir: Path, options: RunOptions, runner
+                    ) -> tuple[RunOptions, dict[Path, Path], dict[Path, BatchRow]]:
+    """Track the takes (reusing tracks kept from an interrupted run), then find or reuse
+    ``outdir/keys.json``. Returns the options with that key set, the track of each take and
+    the rows of the takes that failed."""
+    from ..io.keys_json import save_keys
+    from ..io.track import load_track
+    from ._pipeline import discover_keys
+
+    cache = outdir / TRACKS
+    cache.mkdir(exist_ok=True)
+    tracks = {v: cache / f"{v.stem}.npz" for v in videos}
+    jobs = [(v, tracks[v], options.capture) for v in videos if not tracks[v].is_file()]
+    failed = {}
+    for job, row in runner.map(_track_task, jobs):
+        if not isinstance(row, BatchRow) or row.status == "failed":
+            failed[job[0]] = row if isinstance(row, BatchRow) else _crashed(job[0], row)
+    keys_path = outdir / "keys.json"
+    if not keys_path.is_file():  # a rerun keeps the key set its finished takes were solved with
+        usable = [v for v in videos if v not in failed]
+        if not usable:
+            return replace(options, keys=keys_path), tracks, failed
+        keys = discover_keys([load_track(tracks[v]) for v in usable], regions=options.regions,
+                             n_keys=options.n_keys, method=options.method, neutral=options.neutral,
+                             take=[v.name for v in usable])
+        save_keys(keys, keys_path)
+    return replace(options, keys=keys_path), tracks, failed
+
+
+def _skipped_row(video: Path, outdir: Path) -> BatchRow:
+    """The row of a finished take: its numbers from the last summary when it has them."""
+    previous = _previous_rows(outdir / "summary.csv").get(video.name)
+    if previous is not None and previous.status in ("ok", "skipped"):
+        return replace(previous, status="skipped", seconds=0.0)
+    try:
+        frames = int(json.loads((outdir / video.stem / "take.json").read_text())["n_frames"])
+    except (OSError, ValueError, KeyError, TypeError):
+        frames = None
+    return BatchRow(video.name, frames, status="skipped")
+
+
+def _previous_rows(path: Path) -> dict[str, BatchRow]:
+    if not path.is_file():
+        return {}
+
+    def opt(text, kind):
+        return kind(text) if text not in ("", None) else None
+
+    try:
+        with path.open(newline="") as f:
+            return {r["take"]: BatchRow(r["take"], opt(r["frames"], int), opt(r["detection_rate"], float),
+                                        opt(r["keys"], int), opt(r["error_pct"], float), r["status"])
+                    for r in csv.DictReader(f)}
+    except (OSError, ValueError, KeyError):
+        return {}
+
+
+# -- the summary ----------------------------------------------------------------------------------
+
+def write_summary(rows: Sequence[BatchRow], path: str | Path) -> Path:
+    """Write the summary table as CSV (header :data:`SUMMARY_FIELDS`), atomically."""
+    from ..io.atomic import atomic_path
+
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SUMMARY_FIELDS)
+        writer.writeheader()
+        writer.writerows(row.as_csv() for row in rows)
+    return Path(path)
+
+
+def format_table(rows: Sequence[BatchRow]) -> str:
+    """The summary as an aligned text table, failed takes' errors below it."""
+    head = ("take", "frames", "face %", "K", "error %", "status", "seconds")
+    body = [(r.take, _fmt(r.frames, "d"), _fmt(None if r.detection_rate is None else 100 * r.detection_rate, ".1f"),
+             _fmt(r.keys, "d"), _fmt(r.error_pct, ".2f"), r.status, f"{r.seconds:.1f}") for r in rows]
+    widths = [max(len(str(line[i])) for line in [head, *body]) for i in range(len(head))]
+    lines = ["  ".join(str(c).ljust(w) if i == 0 else str(c).rjust(w) for i, (c, w) in enumerate(zip(line, widths)))
+             for line in [head, *body]]
+    lines += [f"{r.take}: {r.error}" for r in rows if r.status == "failed"]
+    return "\n".join(lines)
+
+
+def _fmt(value, fmt) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return format(value, fmt)

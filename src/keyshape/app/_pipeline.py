@@ -1,0 +1,201 @@
+"""The paper's method end to end, as a few calls over the stage modules.
+
+``discover_keys`` (align + select) and ``solve_take`` (align onto the key set's neutral + solve)
+glue the stages the way the command line uses them; each stage stays usable on its own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..alignment import align, choose_neutral
+from ..capture.filters import GapReport, gap_report, hold_neutral
+from ..capture.gaze import Gaze, estimate_gaze
+from ..containers import KeyShapes, Poses, Track, Weights
+from ..decompose import solve_weights
+from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..exceptions import InputError
+from ..keyshapes import find_keyshapes
+from ..metrics import face_scale, reconstruction_error
+from ..schemes import resolve_regions, stable_points
+
+__all__ = ["discover_keys", "solve_take", "fit_errors", "head_and_gaze", "arkit_scores", "Solved"]
+
+
+def _check_neutral(track: Track, neutral: int | None, stable: np.ndarray) -> int:
+    if neutral is None:
+        return choose_neutral(track, stable=stable)
+    if not 0 <= neutral < track.n_frames:
+        raise InputError(f"--neutral must be a frame in 0..{track.n_frames - 1}; got {neutral}")
+    if not track.valid[neutral]:
+        raise InputError(f"--neutral frame {neutral} has no face; choose a frame where the face was found")
+    return neutral
+
+
+def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = "upper-lower",
+                  n_keys: int | str = 8, method: str = "spa", neutral: int | None = None,
+                  take: str | Sequence[str] = "", stable: np.ndarray | None = None,
+                  upper: float | None = DEFAULT_UPPER, max_error: float = 2.0) -> KeyShapes:
+    """Key shapes of one take, or one key set across several takes of the same actor.
+
+    Pick the neutral frame (of the first take), align every frame of every take onto it,
+    and select real frames per region from all takes together; each key records its take
+    and frame, so one set of sculpted targets serves every take.
+
+    Parameters
+    ----------
+    track : Track in image coordinates, or a sequence of them (same landmark scheme)
+    regions : region scheme name, REGIONS.json path (see :func:`keyshape.schemes.resolve_regions`)
+        or a dict region -> (n_region_landmarks,) int
+    n_keys : key shapes per region, or "auto": the fewest per region whose RMS error is below
+        ``max_error`` (% of the inter-ocular distance; see :func:`keyshape.keyshapes._search.find_keyshapes`)
+    method : "spa", "hull" or "spread"
+    neutral : the neutral frame of the first take, or None to choose it automatically
+        (:func:`keyshape.alignment._procrustes.choose_neutral`: the frame closest to the median aligned shape)
+    take : a name per take, recorded with every key
+    stable : (n_stable,) int landmarks to align on (default: the scheme's stable points)
+    upper : the weight bound the keys will be solved with (selection fits under it)
+    """
+    tracks = [track] if isinstance(track, Track) else list(track)
+    takes = [take] if isinstance(take, str) else list(take)
+    takes = takes if len(takes) == len(tracks) else [f"take{i}" for i in range(len(tracks))]
+    first = tracks[0]
+    for name, other in zip(takes, tracks):
+        if (other.n_landmarks, other.n_dims) != (first.n_landmarks, first.n_dims):
+            raise InputError(f"{name}: has {other.n_landmarks} landmarks in {other.n_dims}D but "
+                             f"{takes[0]} has {first.n_landmarks} in {first.n_dims}D")
+    valid = sum(int(t.valid.sum()) for t in tracks)
+    if valid < 2:
+        raise InputError(f"a track needs at least 2 frames with a face; this one has {valid}")
+    region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
+    stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
+    neutral = _check_neutral(first, neutral, stable)
+    together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps)
+    keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
+                          neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)
+    return _split_takes(keys, [t.n_frames for t in tracks], takes)
+
+
+def _aligned_together(tracks: Sequence[Track], reference: np.ndarray, stable: np.ndarray) -> np.ndarray:
+    """(sum of n_frames, n_landmarks, n_dims): every take aligned onto ``reference``, end to end.
+
+    Filled take by take into one array, so only one take's aligned copy exists besides it.
+    """
+    first = tracks[0]
+    out = np.empty((sum(t.n_frames for t in tracks), first.n_landmarks, first.n_dims))
+    start = 0
+    for t in tracks:
+        out[start : start + t.n_frames] = align(t, reference=reference, stable=stable)[0].points
+        start += t.n_frames
+    return out
+
+
+def _split_takes(keys: KeyShapes, lengths: list[int], takes: list[str]) -> KeyShapes:
+    """Turn frame indices into the concatenated takes back into (take, frame) pairs."""
+    starts = np.cumsum([0, *lengths[:-1]])
+    which = np.searchsorted(starts, keys.frames, side="right") - 1
+    return KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames - starts[which],
+                     keys.key_regions, keys.regions, tuple(takes[i] for i in which),
+                     keys.neutral_frame, takes[0], keys.method, keys.stable)
+
+
+@dataclass(frozen=True)
+class Solved:
+    """A take decomposed on a key set.
+
+    weights : Weights (n_frames, n_keys); poses : Poses (head); aligned : Track (head removed);
+    gaps : GapReport (frames without a face and what was done with them); gaze : Gaze or None
+    (per-eye yaw and pitch, MediaPipe tracks only)
+    """
+
+    weights: Weights
+    poses: Poses
+    aligned: Track
+    gaps: GapReport
+    gaze: Gaze | None = None
+
+
+
+
+def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMOOTHNESS,
+               upper: float | None = DEFAULT_UPPER, convex: bool = False,
+               max_bridge: float = 0.5) -> Solved:
+    """Align ``track`` onto the key set's neutral shape and solve the weights.
+
+    Parameters
+    ----------
+    track : Track in image coordinates, same landmarks as the key set
+    keys : KeyShapes
+    smoothness, upper, convex : see :func:`keyshape.decompose._solve.solve_weights`. The default
+        is the zero-lag smoothed solve bounded to ``0 <= w <= 1``; ``smoothness=0, upper=None``
+        is the paper's per-frame NNLS.
+    max_bridge : seconds; with smoothing, gaps up to this long between faces are bridged by
+        the smooth solve, longer ones (and gaps at the ends) hold the neutral pose (weights 0)
+    """
+    if track.n_landmarks != keys.n_landmarks or track.n_dims != keys.n_dims:
+        raise InputError(
+            f"the track has {track.n_landmarks} landmarks in {track.n_dims}D but the key set was made "
+            f"from {keys.n_landmarks} in {keys.n_dims}D"
+        )
+    stable = keys.stable if keys.stable is not None else stable_points(track.n_landmarks)
+    aligned, poses = align(track, reference=keys.neutral, stable=stable)
+    gaps = gap_report(track.valid, max_bridge=int(round(max_bridge * track.fps)))
+    values = np.full((track.n_frames, keys.n_keys), np.nan)
+    for start, stop in _segments(gaps):  # held gaps split the take: no data, nothing to bridge
+        values[start:stop] = solve_weights(aligned[start:stop], keys, upper=upper, smoothness=smoothness,
+                                           convex=convex).values
+    if smoothness > 0:
+        values = hold_neutral(values, gaps)
+    weights = Weights(values, keys.names, track.fps)
+    gaze = estimate_gaze(aligned.points, reference=keys.neutral) if track.n_landmarks == 478 else None
+    return Solved(weights, poses, aligned, gaps, gaze)
+
+
+def fit_errors(tracks: Track | Sequence[Track], keys: KeyShapes, *,
+               upper: float | None = DEFAULT_UPPER) -> tuple[dict[str, float], str]:
+    """RMS reconstruction error per region of the key set's best bounded fit of the take(s).
+
+    Returns ``({region: error}, unit)``, errors in % of the inter-ocular distance (or of the
+    face size for schemes without eye corners; see :func:`keyshape.metrics.face_scale`).
+    """
+    tracks = [tracks] if isinstance(tracks, Track) else list(tracks)
+    stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
+    points = _aligned_together(tracks, keys.neutral, stable)
+    errors = reconstruction_error(Track(points, tracks[0].fps), keys, upper=upper)
+    length, unit = face_scale(keys.neutral)
+    return {region: 100 * e / length for region, e in errors.items()}, unit
+
+
+def _segments(gaps: GapReport) -> list[tuple[int, int]]:
+    """``(start, stop)`` runs of frames between the held gaps (each starts and ends with a face)."""
+    held = np.zeros(gaps.n_frames, dtype=bool)
+    for start, length in gaps.held:
+        held[start:start + length] = True
+    edges = np.flatnonzero(np.diff(np.concatenate([[1], held.astype(np.int8), [1]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
+
+
+def head_poses(track: Track) -> Poses:
+    """Head motion of a take relative to its own automatically chosen neutral frame."""
+    return head_and_gaze(track)[0]
+
+
+def head_and_gaze(track: Track) -> tuple[Poses, Gaze | None]:
+    """Head poses and (MediaPipe tracks) per-eye gaze, relative to the take's own neutral frame."""
+    stable = stable_points(track.n_landmarks)
+    neutral = choose_neutral(track, stable=stable)
+    aligned, poses = align(track, reference=track.points[neutral], stable=stable)
+    gaze = estimate_gaze(aligned.points, neutral_frame=neutral) if track.n_landmarks == 478 else None
+    return poses, gaze
+
+
+def arkit_scores(track: Track, *, source: str | Path = "track") -> Weights:
+    """MediaPipe's ARKit-style scores as Weights ``(n_frames, 52)`` (``_neutral`` left out)."""
+    if track.blendshapes is None or not track.blendshape_names:
+        raise InputError(f"{source}: has no blendshape scores (tracks from `keyshape track` do)")
+    keep = [i for i, n in enumerate(track.blendshape_names) if not n.startswith("_")]
+    return Weights(track.blendshapes[:, keep], [track.blendshape_names[i] for i in keep], track.fps)

@@ -1,0 +1,171 @@
+"""One take, start to finish: what ``keyshape run``, ``demo`` and ``batch`` do.
+
+``run_take`` tracks a video, discovers (or reuses) the key shapes, solves the weights, drives a
+character and writes every output into one folder. Outputs are staged in a hidden folder beside
+and moved in only when everything succeeded, so a failure leaves no half-written take behind.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..containers import KeyShapes, Rig, Track
+from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..exceptions import InputError
+
+__all__ = ["RunOptions", "TakeSummary", "run_take", "OUTPUT_FILES"]
+
+OUTPUT_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Settings of a run (the command line's options)."""
+
+    rig: Path | None = None
+    mapping: Path | None = None
+    keys: Path | None = None  # reuse this key set instead of discovering one
+    regions: str | Path = "upper-lower"
+    n_keys: int | str = 8  # or "auto"
+    max_error: float = 2.0  # % inter-ocular distance, for n_keys="auto"
+    method: str = "spa"
+    neutral: int | None = None
+    capture: dict = field(default_factory=dict)  # start, end, fps, face, one_euro
+    smoothness: float = DEFAULT_SMOOTHNESS
+    upper: float | None = DEFAULT_UPPER
+    convex: bool = False
+    auto_targets: bool = False  # propose the rig's targets (or a mapping) for the keys
+    correspondence: Path | None = None  # auto_targets: landmark -> mesh file (default: found)
+    normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
+    preview: bool = True
+    extras: bool = True
+
+
+@dataclass(frozen=True)
+class TakeSummary:
+    """What a run found, for people (printed) and for batch tables."""
+
+    take: str
+    n_frames: int
+    detection_rate: float
+    keys_per_region: dict[str, int]
+    error_pct: float  # RMS reconstruction error, % of the inter-ocular distance (NaN if unknown)
+    gaps: str
+    files: tuple[str, ...]
+    seconds: float
+    keys: KeyShapes = field(repr=False, compare=False, default=None)
+
+
+def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object, bool, object]:
+    """The character, the key -> target mapping, whether the rig file is kept whole, and the
+    :class:`~keyshape.targets._propose.AutoTargets` proposal (None without ``auto_targets``)."""
+    from ..io.rig import load_rig
+    from ..targets import Mapping
+
+    if options.rig is None:
+        from ..targets import default_character
+
+        rig = default_character(keys)  # a stylised head with proposed targets (issue 7)
+        return rig, Mapping.by_name(keys.names, rig.names), False, None
+    if options.auto_targets:
+        from ..targets import auto_targets
+
+        auto = auto_targets(keys, options.rig, correspondence=options.correspondence,
+                            normalize=options.normalize)
+        return auto.rig, auto.mapping, auto.route == "mapping", auto
+    rig = load_rig(options.rig)
+    if options.mapping is not None:
+        return rig, Mapping.from_file(options.mapping, targets=rig.names), True, None
+    return rig, Mapping.by_name(keys.names, rig.names), True, None
+
+
+def _error_pct(solved, keys: KeyShapes) -> float:
+    from ..schemes import eye_corners
+
+    corners = eye_corners(keys.n_landmarks)
+    if corners is None:
+        return float("nan")
+    iod = np.linalg.norm(keys.neutral[corners[0], :2] - keys.neutral[corners[1], :2])
+    idx = np.unique(np.concatenate(list(keys.regions.values())))
+    recon = keys.pose(solved.weights.values)[:, idx]
+    valid = solved.aligned.valid
+    diff = recon[valid] - solved.aligned.points[valid][:, idx]
+    return float(100 * np.sqrt(np.mean(np.sum(diff**2, axis=2))) / iod)
+
+
+def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, options,
+                   keep_file: bool = True) -> None:
+    from ..io import export
+    from ..io.keys_json import save_keys
+    from ..io.take import save_take_info
+    from ..io.track import save_track
+    from ..io.weights_csv import save_weights_csv
+    from ..targets import retarget
+
+    save_track(track, stage / "track.npz")
+    save_keys(keys, stage / "keys.json")
+    save_weights_csv(solved.weights, stage / "weights.csv")
+    anim = retarget(solved.weights, mapping)
+    source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
+        options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
+    eyes = solved.gaze.rotations() if solved.gaze is not None else None
+    export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes)
+    save_take_info(stage / "take.json", video=video, track=track, keys=keys)
+
+
+def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOptions(), *,
+             progress: bool = True, track: Track | None = None) -> TakeSummary:
+    """Track ``video``, find key shapes, solve, drive the character, write everything to ``outdir``.
+
+    ``track``: the take's track when it was made already (``video`` is then only recorded).
+
+    Writes ``track.npz``, ``keys.json``, ``weights.csv``, ``animation.glb``, ``take.json`` and,
+    with ``options.extras``, ``preview.mp4`` (``options.preview``), the pictures and ``report.html``.
+    Everything is staged and moved into ``outdir`` at the end; on error nothing is moved.
+    """
+    from ..capture import track_video
+    from ..io.keys_json import load_keys
+    from ._pipeline import discover_keys, solve_take
+
+    start = time.perf_counter()
+    video, outdir = Path(video), Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(f"{outdir}: exists and is not a folder")
+    if track is None:
+        track = track_video(video, progress=progress, **options.capture)
+    if options.keys is not None:
+        keys = load_keys(options.keys)
+    else:
+        keys = discover_keys(track, regions=options.regions, n_keys=options.n_keys,
+                             method=options.method, neutral=options.neutral, take=video.name,
+                             upper=options.upper, max_error=options.max_error)
+    solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
+                        convex=options.convex)
+    rig, mapping, keep_file, auto = _rig_and_mapping(options, keys)
+    outdir.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
+    try:
+        _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file)
+        if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
+            auto.correspondence.save(stage / "correspondence.json")
+            if auto.route == "mapping":
+                auto.mapping.save(stage / "map.json")
+        if options.extras:
+            from ..report import write_take_extras
+
+            write_take_extras(stage, progress=progress, preview=options.preview)
+        files = tuple(sorted(p.name for p in stage.iterdir()))
+        outdir.mkdir(exist_ok=True)
+        for name in files:
+            (stage / name).replace(outdir / name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return TakeSummary(video.name, track.n_frames, float(track.valid.mean()),
+                       {r: len(keys.keys_of(r)) for r in keys.regions}, _error_pct(solved, keys),
+                       str(solved.gaps), files, time.perf_counter() - start, keys)

@@ -1,0 +1,305 @@
+"""The sculpt kit: everything an artist needs to sculpt one target per key shape.
+
+The paper's artist sculpts, for every key shape, the character's version of that expression
+("a smile for a smile"). :func:`write_sculpt_kit` writes into a folder
+
+* ``sculpt.glb``: the character with one morph target per key shape, named after it, each
+  starting as the neutral (or as a proposal from ``propose``). For a glTF character the
+  artist's own file is kept whole (materials, skinning, other meshes); the key targets
+  replace any targets the chosen meshes had.
+* ``keys.png``: the contact sheet: per region a row with the neutral frame and each key's
+  frame, cropped to the face, landmarks drawn and the region's landmarks highlighted.
+* ``README.md``: what to do, with the table of keys (name, region, frame, time).
+
+The artist sculpts the targets (e.g. Blender's shape keys), exports a ``.glb``, and
+``keyshape retarget WEIGHTS.csv --rig THAT.glb`` drives it as it is: targets match keys by name.
+
+Hook for automatic targets: ``propose(keys, neutral) -> (n_keys, n_vertices, 3)`` deltas,
+given the key shapes and the character's neutral (:class:`~keyshape.containers.Rig`, no
+targets, vertices as stored); its result becomes the starting targets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..containers import KeyShapes, Rig, Track, Weights
+from ..exceptions import InputError, RigError
+from ..io.atomic import atomic_path
+
+__all__ = ["SculptKit", "sculpt_targets", "write_sculpt_kit", "contact_sheet", "Proposer"]
+
+Proposer = Callable[[KeyShapes, Rig], np.ndarray]
+GLB, SHEET, README = "sculpt.glb", "keys.png", "README.md"
+_REGION_COLOURS = [(230, 80, 60), (40, 150, 240), (80, 190, 90), (240, 180, 30), (170, 90, 220), (30, 200, 200)]
+
+
+@dataclass(frozen=True)
+class SculptKit:
+    """The files of a written sculpt kit."""
+
+    folder: Path
+    glb: Path
+    sheet: Path
+    readme: Path
+
+
+def sculpt_targets(keys: KeyShapes, neutral: Rig, *, propose: Proposer | None = None) -> Rig:
+    """The character with one target per key shape, named after it.
+
+    Parameters
+    ----------
+    keys : KeyShapes
+    neutral : Rig
+        The character; its own targets, if any, are dropped.
+    propose : callable, optional, keyword-only
+        ``propose(keys, neutral) -> (n_keys, n_vertices, 3)`` starting deltas. Default: zeros
+        (every target starts as the neutral).
+
+    Returns
+    -------
+    Rig
+        ``names = keys.names``, ``deltas (n_keys, n_vertices, 3)``.
+
+    Examples
+    --------
+    >>> keys = KeyShapes(np.zeros((2, 2)), np.ones((1, 2, 2)), ("lower_00",), [4], ("lower",), {"lower": [0, 1]})
+    >>> rig = sculpt_targets(keys, Rig(np.eye(3), [[0, 1, 2]], np.zeros((0, 3, 3)), ()))
+    >>> rig.names, rig.deltas.shape, float(abs(rig.deltas).max())
+    (('lower_00',), (1, 3, 3), 0.0)
+    """
+    base = Rig(neutral.vertices, neutral.faces, np.zeros((0, neutral.n_vertices, 3)), ())
+    deltas = np.zeros((keys.n_keys, neutral.n_vertices, 3))
+    if propose is not None:
+        deltas = np.asarray(propose(keys, base), dtype=float)
+        if deltas.shape != (keys.n_keys, neutral.n_vertices, 3) or not np.isfinite(deltas).all():
+            raise RigError(f"propose must return finite deltas of shape ({keys.n_keys}, "
+                           f"{neutral.n_vertices}, 3); got {deltas.shape}")
+    return Rig(neutral.vertices, neutral.faces, deltas, keys.names)
+
+
+def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit: float = 1.0,
+                     meshes=None, propose: Proposer | None = None) -> SculptKit:
+    """Write the sculpt kit for ``keys`` on the character ``rig`` into ``folder``.
+
+    Parameters
+    ----------
+    keys : KeyShapes
+    rig : str or Path
+        The character's neutral: a ``.glb``/``.gltf`` (kept whole), an ``.obj``, an OBJ rig
+        folder (its neutral is used) or a USD rig.
+    folder : str or Path
+        Created if needed; the kit's files are written atomically.
+    track : Track, keyword-only
+        The take the keys come from (image-space landmarks for the contact sheet).
+    video : str or Path, keyword-only
+        Its video (or image folder).
+    unit : float, keyword-only
+        Metres per OBJ unit (see :func:`keyshape.io.rig.load_rig`).
+    meshes : sequence of int or str, optional, keyword-only
+        glTF meshes to put the targets on; default: those with morph targets, else all.
+    propose : callable, optional, keyword-only
+        Starting targets (see :func:`sculpt_targets`).
+
+    Returns
+    -------
+    SculptKit
+    """
+    folder, rig = Path(folder), Path(rig)
+    _check_track(keys, track)
+    is_gltf = rig.suffix.lower() in (".glb", ".gltf")
+    neutral = _neutral(rig, unit=unit, meshes=meshes)
+    targets = sculpt_targets(keys, neutral, propose=propose)
+    glb = _write_glb(rig if is_gltf else None, folder / GLB, targets, meshes)
+    sheet = contact_sheet(keys, track, video, folder / SHEET)
+    readme = _write_readme(folder / README, keys, track, Path(video), rig, targets)
+    return SculptKit(folder, glb, sheet, readme)
+
+
+def _check_track(keys: KeyShapes, track: Track) -> None:
+    if track.n_landmarks != keys.n_landmarks:
+        raise InputError(f"the track has {track.n_landmarks} landmarks but the keys were made from "
+                         f"{keys.n_landmarks}: give the track the keys come from")
+    last = int(max(keys.frames.max(initial=0), keys.neutral_frame))
+    if last >= track.n_frames:
+        raise InputError(f"the keys use frame {last} but the track has {track.n_frames} frames: "
+                         "give the track (and video) the keys come from")
+
+
+def _neutral(rig: Path, *, unit: float, meshes) -> Rig:
+    if rig.suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import read_meshes
+
+        return read_meshes(rig, meshes=meshes)[0]
+    from ..io.rig import load_rig
+
+    return load_rig(rig, unit=unit)
+
+
+def _write_glb(source: Path | None, path: Path, targets: Rig, meshes) -> Path:
+    from ..io.gltf import write_glb, write_gltf_targets
+
+    if source is not None:
+        return write_gltf_targets(source, path, targets, meshes=meshes)
+    still = Weights(np.zeros((0, targets.n_targets)), targets.names, fps=30.0)
+    return write_glb(path, targets, still)
+
+
+# --------------------------------------------------------------------------- the contact sheet
+
+
+def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240) -> Path:
+    """Draw the key frames as a PNG: one row per region, the neutral first, landmarks on the video.
+
+    Parameters
+    ----------
+    keys : KeyShapes
+    track : Track
+        Image-space landmarks of the take (``n_landmarks`` as ``keys``).
+    video : str or Path
+        The take's video or image folder (decoded with :func:`keyshape.capture.video.iter_frames`).
+    path : str or Path
+        Output ``.png`` (atomic).
+    cell : int, keyword-only
+        Side of each square picture, pixels.
+
+    Returns
+    -------
+    Path
+    """
+    from PIL import Image, ImageDraw
+
+    frames = _decode(video, {int(keys.neutral_frame), *(int(f) for f in keys.frames)})
+    regions = list(keys.regions)
+    columns = 1 + max(len(keys.keys_of(r)) for r in regions)
+    label, title = 34, 30
+    sheet = Image.new("RGB", (columns * cell, title + len(regions) * (cell + label)), (24, 24, 24))
+    draw = ImageDraw.Draw(sheet)
+    draw.text((8, 7), f"{keys.n_keys} key shapes, {Path(video).name}: sculpt one target per key, named as shown",
+              fill=(235, 235, 235), font=_font(15))
+    for row, region in enumerate(regions):
+        colour = _REGION_COLOURS[row % len(_REGION_COLOURS)]
+        entries = [("neutral", int(keys.neutral_frame))]
+        entries += [(keys.names[k], int(keys.frames[k])) for k in keys.keys_of(region)]
+        for column, (name, frame) in enumerate(entries):
+            picture = _cell(frames[frame], track.points[frame, :, :2], keys.regions[region], colour, cell)
+            x, y = column * cell, title + row * (cell + label)
+            sheet.paste(picture, (x, y))
+            caption = f"{name}  ({region})" if name == "neutral" else name
+            draw.text((x + 6, y + cell + 2), caption, fill=colour, font=_font(15))
+            draw.text((x + 6, y + cell + 18), f"frame {frame}  {frame / track.fps:.2f} s",
+                      fill=(200, 200, 200), font=_font(12))
+    with atomic_path(path) as tmp:
+        sheet.save(tmp, format="PNG")
+    return Path(path)
+
+
+def _font(size: int):
+    from PIL import ImageFont
+
+    return ImageFont.load_default(size=size)
+
+
+def _decode(video, wanted: set[int]) -> dict[int, np.ndarray]:
+    from ..capture.video import iter_frames
+
+    found, count = {}, 0
+    for index, (_, rgb) in enumerate(iter_frames(video, end=max(wanted) + 1)):
+        count = index + 1
+        if index in wanted:
+            found[index] = rgb
+    missing = sorted(wanted - set(found))
+    if missing:
+        raise InputError(f"{video}: has no frame {missing[0]} (it has {count} frames); "
+                         "give the video the keys come from")
+    return found
+
+
+def _cell(rgb: np.ndarray, points: np.ndarray, region: np.ndarray, colour, size: int):
+    """The face in one square picture, landmarks grey and the region's in ``colour``."""
+    from PIL import Image, ImageDraw
+
+    image = Image.fromarray(rgb)
+    box = _face_box(points, image.size)
+    picture = image.crop(box).resize((size, size))
+    draw = ImageDraw.Draw(picture)
+    if not np.isfinite(points).all():
+        draw.text((8, 8), "no face in this frame", fill=(255, 90, 90), font=_font(14))
+        return picture
+    scale = size / (box[2] - box[0])
+    xy = (points - [box[0], box[1]]) * scale
+    for x, y in xy:
+        draw.point((x, y), fill=(170, 170, 170))
+    for x, y in xy[region]:
+        draw.ellipse((x - 1.5, y - 1.5, x + 1.5, y + 1.5), fill=colour)
+    return picture
+
+
+def _face_box(points: np.ndarray, image_size) -> tuple[int, int, int, int]:
+    """A square around the landmarks with a margin (the whole picture without a face)."""
+    if not np.isfinite(points).all():
+        side = max(image_size)
+        return (0, 0, side, side)
+    low, high = points.min(axis=0), points.max(axis=0)
+    centre, side = (low + high) / 2, max(1.0, float((high - low).max()) * 1.3)
+    x0, y0 = (centre - side / 2).round().astype(int)
+    return (int(x0), int(y0), int(x0 + round(side)), int(y0 + round(side)))
+
+
+# --------------------------------------------------------------------------- README
+
+
+def _write_readme(path: Path, keys: KeyShapes, track: Track, video: Path, rig: Path, targets: Rig) -> Path:
+    rows = [f"| `{keys.names[k]}` | {keys.key_regions[k]} | {int(keys.frames[k])} | "
+            f"{keys.frames[k] / track.fps:.2f} |" for k in range(keys.n_keys)]
+    text = _README.format(n_keys=keys.n_keys, video=video.name, rig=rig.name, n_vertices=targets.n_vertices,
+                          neutral=int(keys.neutral_frame), table="\n".join(rows), first=keys.names[0])
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return path
+
+
+_README = """# Sculpt kit: {n_keys} key shapes
+
+keyshape found {n_keys} **key shapes** in `{video}`: real frames of the performance that, blended
+with non-negative weights, reproduce every other frame. Give the character one target per key
+shape, sculpted as *its* version of that expression, and the same weights will animate it.
+
+| file | what |
+|---|---|
+| `{glb}` | `{rig}` ({n_vertices} vertices) with one morph target (shape key) per key shape, named after it; each starts as the neutral |
+| `{sheet}` | the key frames: one row per face region, the neutral frame first, the region's landmarks highlighted |
+
+## Sculpt
+
+1. Look at `{sheet}`. Each key moves only its own region (upper: brows and eyes; lower: mouth and jaw);
+   sculpt only that region in its target and leave the rest neutral, so keys of different regions
+   combine freely.
+2. Open `{glb}` in your tool. Blender: *File > Import > glTF 2.0*; the mesh's *Shape Keys* are
+   `{first}` and the others, all at value 0 and identical to the *Basis*.
+3. For each shape key, select it, set its value to 1 and sculpt or edit the mesh (edit mode works on the
+   selected shape key) until the character makes the expression of that frame. Exaggerate or stylise
+   freely; the weights carry timing and intensity, not the actor's geometry.
+4. Export a binary glTF (`.glb`) with shape keys (Blender: *Data > Shape Keys*, on by default). Keep the
+   shape-key names: they connect targets to keys.
+
+## Animate
+
+    keyshape retarget weights.csv --rig sculpted.glb --track track.npz -o animation.glb
+
+`weights.csv` and `track.npz` are the outputs of `keyshape run` (or `solve` and `track`). The output is
+your file, kept whole, with an animation `keyshape` added (morph weights, and the head rotation on a node
+named like `head`). Other formats: `-o animation.usda` (USD), `--format livelink -o take.csv`.
+
+Units and axes: glTF metres, +Y up, the character facing +Z. The neutral frame is {neutral}.
+
+## Key shapes
+
+| name | region | frame | time (s) |
+|---|---|---|---|
+{table}
+""".replace("{glb}", GLB).replace("{sheet}", SHEET)  # noqa: E501 - markdown table rows cannot wrap

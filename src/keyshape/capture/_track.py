@@ -1,0 +1,229 @@
+"""Stage 1, capture: video → :class:`~keyshape.containers.Track`.
+
+``track_video`` decodes with PyAV (``video.py``, in a background thread so decoding overlaps
+inference) and tracks with MediaPipe's FaceLandmarker (``mediapipe.py``). A frame without a
+face becomes a NaN frame; a video with no face at all is an error. ``track_to_file`` does the
+same but streams the results to disk, so memory stays flat however long the video is.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Self
+
+import numpy as np
+
+from ..containers import Track
+from ..exceptions import InputError, NoFaceError
+from .mediapipe import Detection, MediaPipeTracker, TrackerOptions, default_model_path
+from .video import VideoInfo, iter_frames, prefetch, probe
+
+__all__ = ["track_video", "track_to_file", "TrackerOptions", "MediaPipeTracker", "default_model_path",
+           "probe", "iter_frames", "VideoInfo", "FaceFollower"]
+
+N_LANDMARKS = 478
+N_SCORES = 52
+
+
+class FaceFollower:
+    """Follow one person through a video: never jump between people.
+
+    The ``face``-th largest face (0 = largest) is chosen when a face is first seen. After
+    that the face whose centre is nearest the followed one's last centre is kept, and only
+    if it lies within ``max_jump`` face widths of it (the allowance grows by 10 % per frame
+    the face was missing); anything farther is another person, and the frame is a gap.
+    """
+
+    def __init__(self, face: int = 0, *, max_jump: float = 1.0):
+        self.face = face
+        self.max_jump = max_jump
+        self.last: np.ndarray | None = None
+        self.width = 0.0
+        self.missing = 0
+
+    def pick(self, faces: list[Detection]) -> Detection | None:
+        """The followed person's detection among ``faces``, or None."""
+        chosen = self._first(faces) if self.last is None else self._nearest(faces)
+        if chosen is None:
+            self.missing += 1
+            return None
+        self.last = chosen.points[:, :2].mean(axis=0)
+        self.width = float(np.ptp(chosen.points[:, 0]))
+        self.missing = 0
+        return chosen
+
+    def _first(self, faces: list[Detection]) -> Detection | None:
+        ranked = sorted(faces, key=lambda f: -np.prod(np.ptp(f.points[:, :2], axis=0)))
+        return ranked[self.face] if len(ranked) > self.face else None
+
+    def _nearest(self, faces: list[Detection]) -> Detection | None:
+        if not faces:
+            return None
+        distance = [np.linalg.norm(f.points[:, :2].mean(axis=0) - self.last) for f in faces]
+        best = int(np.argmin(distance))
+        allowed = self.max_jump * self.width * (1 + 0.1 * self.missing)
+        return faces[best] if distance[best] <= allowed else None
+
+
+@dataclass(frozen=True)
+class _Frame:
+    points: np.ndarray  # (478, 3) float32, NaN if no face
+    scores: np.ndarray  # (52,) float32
+    matrix: np.ndarray  # (4, 4) float32
+
+
+def _nan_frame() -> _Frame:
+    return _Frame(np.full((N_LANDMARKS, 3), np.nan, np.float32), np.full(N_SCORES, np.nan, np.float32),
+                  np.full((4, 4), np.nan, np.float32))
+
+
+def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, start: int,
+            end: int | None, fps: float | None, face: int, progress: bool,
+            one_euro: dict | None = None) -> Iterator[_Frame]:
+    from tqdm import tqdm
+
+    from .filters import OneEuro
+
+    smooth = OneEuro(info.fps, **one_euro) if one_euro is not None else None
+    options = options or TrackerOptions()
+    if face > 0 and options.num_faces < face + 2:  # see the others too, so we can tell them apart
+        options = TrackerOptions(options.model_path, face + 2, options.min_detection_confidence,
+                                 options.min_tracking_confidence, options.min_presence_confidence)
+    total = (min(end, info.n_frames) if end is not None and info.n_frames else end or info.n_frames) - start
+    follower = FaceFollower(face)
+    with MediaPipeTracker(options) as tracker:
+        source = prefetch(iter_frames(path, start=start, end=end, fps=fps))
+        for ms, rgb in tqdm(source, total=total if total > 0 else None, unit="frame",
+                            desc=f"track {path.name}", disable=not progress, leave=False,
+                            dynamic_ncols=True):
+            chosen = follower.pick(tracker.detect(rgb, ms))
+            if chosen is None or len(chosen.scores) != N_SCORES:
+                if smooth is not None:
+                    smooth(np.full(1, np.nan))  # a gap restarts the filter
+                yield _nan_frame()
+            else:
+                points = smooth(chosen.points) if smooth is not None else chosen.points
+                yield _Frame(points.astype(np.float32), chosen.scores.astype(np.float32),
+                             chosen.matrix.astype(np.float32))
+
+
+def _check_range(start: int, end: int | None) -> None:
+    if start < 0 or (end is not None and end <= start):
+        raise InputError(f"frame range must satisfy 0 <= start < end; got start={start}, end={end}")
+
+
+def _blendshape_names() -> tuple[str, ...]:
+    from .mediapipe import BLENDSHAPE_NAMES
+
+    return BLENDSHAPE_NAMES
+
+
+class _Spool:
+    """Append-only float32 files on disk, read back as memory maps (flat memory)."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.files = {}
+        self._open = ExitStack()
+        self.n_frames = 0
+        self.n_faces = 0
+
+    def append(self, frame: _Frame) -> None:
+        for name, fh in self.files.items():
+            fh.write(np.ascontiguousarray(getattr(frame, name)).tobytes())
+        self.n_frames += 1
+        self.n_faces += bool(np.isfinite(frame.points[0, 0]))
+
+    def __enter__(self) -> Self:
+        with ExitStack() as stack:  # a failed open closes the ones before it
+            self.files = {name: stack.enter_context(open(self.folder / f"{name}.f32", "wb"))
+                          for name in ("points", "scores", "matrix")}
+            self._open = stack.pop_all()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._open.close()
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Memory maps of what was written (call after the ``with`` block)."""
+        shapes = {"points": (N_LANDMARKS, 3), "scores": (N_SCORES,), "matrix": (4, 4)}
+        return {name: np.memmap(self.folder / f"{name}.f32", dtype=np.float32, mode="r",
+                                shape=(self.n_frames, *shape)) for name, shape in shapes.items()}
+
+
+def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
+           one_euro: dict | None = None) -> tuple[_Spool, VideoInfo]:
+    _check_range(start, end)
+    path = Path(path)
+    info = probe(path, fps=fps)
+    with _Spool(folder) as spool:
+        for frame in _frames(path, info, options=options, start=start, end=end, fps=fps, face=face,
+                             progress=progress, one_euro=one_euro):
+            spool.append(frame)
+    if spool.n_faces == 0:
+        raise NoFaceError(f"{path}: no face found in any of its {spool.n_frames} frames")
+    return spool, info
+
+
+def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,
+                end: int | None = None, fps: float | None = None, face: int = 0,
+                one_euro: dict | None = None, progress: bool = True) -> Track:
+    """Track one face in every frame of a video file or a folder of images.
+
+    Parameters
+    ----------
+    path : video file PyAV can open (rotation metadata is honoured) or a folder of images
+    options : TrackerOptions, optional (the vendored model by default)
+    start, end : frame range ``start <= i < end`` (``end=None``: to the last frame)
+    fps : frame rate override (image folders default to 30)
+    face : which person to follow when several are visible: 0 = the largest face at the start
+    one_euro : None (default), or the settings of a causal One Euro filter on the landmarks
+        (``{}`` for the defaults; see :class:`keyshape.capture.filters.OneEuro`) for live-like use.
+        Offline, the default zero-lag smoothing of the solve is the better choice.
+    progress : show a progress bar with frames/s and ETA on stderr
+
+    Returns
+    -------
+    Track with points (n_frames, 478, 3) in pixels (z on the x scale), NaN where no face;
+    blendshapes (n_frames, 52) ARKit-style scores; head_matrix (n_frames, 4, 4).
+
+    Raises
+    ------
+    InputError : missing or unreadable input, bad range. NoFaceError : no face in any frame.
+    """
+    with tempfile.TemporaryDirectory(prefix="keyshape-track-") as tmp:
+        spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
+                             progress=progress, folder=Path(tmp), one_euro=one_euro)
+        arrays = spool.arrays()
+        track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
+                      _blendshape_names(), arrays["matrix"])
+        del arrays
+    return track
+
+
+def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptions | None = None,
+                  start: int = 0, end: int | None = None, fps: float | None = None, face: int = 0,
+                  one_euro: dict | None = None, progress: bool = True) -> dict:
+    """Track a video straight into a track file; memory use does not grow with its length.
+
+    Same parameters as :func:`track_video`. Returns a summary dict: ``n_frames``,
+    ``n_faces`` (frames with a face), ``fps``, ``image_size``.
+    """
+    from ..io.track import write_track_arrays
+
+    output = Path(output)
+    spool_dir = output.parent if output.parent.exists() else None
+    with tempfile.TemporaryDirectory(prefix="keyshape-track-", dir=spool_dir) as tmp:
+        spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
+                             progress=progress, folder=Path(tmp), one_euro=one_euro)
+        arrays = spool.arrays()
+        write_track_arrays(output, points=arrays["points"], fps=info.fps,
+                           image_size=(info.width, info.height), blendshapes=arrays["scores"],
+                           blendshape_names=_blendshape_names(), head_matrix=arrays["matrix"])
+        del arrays
+    return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "fps": info.fps,
+            "image_size": (info.width, info.height)}

@@ -1,0 +1,117 @@
+"""Options and helpers shared by several verbs (kept import-light: argparse and the defaults only)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..exceptions import InputError
+from ._argtypes import bound, non_negative, positive, whole
+
+
+def formatter(prog):
+    return argparse.RawDescriptionHelpFormatter(prog, max_help_position=32)
+
+
+def _count(text: str) -> int | str:
+    return "auto" if text == "auto" else whole(1, 64)(text)
+
+
+def add_key_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", choices=("spa", "hull", "spread"), default="spa",
+                   help="key-shape selection: spa = successive projection on the deltas from neutral "
+                        "(default); hull = convex hull of the leading principal components (paper); "
+                        "spread = extreme projections on the principal components (paper)")
+    p.add_argument("--count", type=_count, default=8, metavar="K",
+                   help="key shapes per region (default 8), or 'auto': the fewest per region whose "
+                        "RMS error is below --max-error (at most 24)")
+    p.add_argument("--max-error", type=positive, default=2.0, metavar="PCT",
+                   help="target of --count auto: RMS reconstruction error in %% of the "
+                        "inter-ocular distance (default 2)")
+    p.add_argument("--regions", default="upper-lower", metavar="SCHEME",
+                   help="upper-lower (brows+eyes / mouth+jaw, default), whole, eyes "
+                        "(brows / left eye / right eye / mouth), or a REGIONS.json mapping region "
+                        "names to landmark indices")
+    p.add_argument("--neutral", type=int, default=None, metavar="FRAME",
+                   help="the neutral (resting) frame; default: chosen automatically as the frame "
+                        "closest to the median aligned shape")
+
+
+def add_capture_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--start", type=int, default=0, metavar="FRAME", help="first frame to track (default 0)")
+    p.add_argument("--end", type=int, default=None, metavar="FRAME",
+                   help="stop before this frame (default: the last frame)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frame rate override (image folders default to 30)")
+    p.add_argument("--face", type=int, default=0, metavar="N",
+                   help="which person to follow when several are visible: 0 = the largest face at "
+                        "the start (default), 1 = the next largest, ...")
+    p.add_argument("--one-euro", nargs="?", const="1.0,0.05", default=None, metavar="MINCUT,BETA",
+                   help="causal One Euro filter on the landmarks, for live-like use (default "
+                        "settings 1.0 Hz, 0.05). Offline, prefer the solve's zero-lag smoothing; "
+                        "MediaPipe's video mode already smooths")
+
+
+def add_solve_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--smooth", type=non_negative, default=DEFAULT_SMOOTHNESS, metavar="LAMBDA",
+                   help=f"temporal smoothness, solved over the whole take with no lag (default "
+                        f"{DEFAULT_SMOOTHNESS}; 0 = the paper's per-frame NNLS). Short gaps without a "
+                        f"face are bridged, longer ones (> 0.5 s) hold the neutral")
+    p.add_argument("--max", type=bound, default=DEFAULT_UPPER, metavar="U",
+                   help=f"upper bound of every weight (default {DEFAULT_UPPER:g}; 'none' lifts it)")
+    p.add_argument("--convex", action="store_true",
+                   help="also require the weights of each region to sum to at most 1")
+
+
+def add_correspondence_option(p, when: str = "") -> None:
+    """``--correspondence CORR.json`` (``propose`` and ``run --auto-targets``; ``when`` prefixes the help)."""
+    p.add_argument("--correspondence", type=Path, default=None, metavar="CORR.json",
+                   help=f"{when}landmark -> mesh point file (default: found automatically)")
+
+
+def add_normalize_option(p, when: str = "mapping: ") -> None:
+    """``--normalize`` (``propose`` and ``run --auto-targets``; ``when`` prefixes the help)."""
+    p.add_argument("--normalize", action="store_true",
+                   help=f"{when}scale each target's gains so the key driving it most drives it fully "
+                        "(stylised rigs whose targets exaggerate; default: the actor's amplitude)")
+
+
+def solve_kwargs(args) -> dict:
+    return {"smoothness": args.smooth, "upper": args.max, "convex": args.convex}
+
+
+def capture_kwargs(args) -> dict:
+    return {"start": args.start, "end": args.end, "fps": args.fps, "face": args.face,
+            "one_euro": _one_euro(args.one_euro)}
+
+
+def _one_euro(text: str | None) -> dict | None:
+    if text is None:
+        return None
+    try:
+        min_cutoff, beta = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--one-euro expects MINCUT,BETA such as 1.0,0.05; got {text!r}") from None
+    if min_cutoff <= 0 or beta < 0:
+        raise InputError(f"--one-euro needs MINCUT > 0 and BETA >= 0; got {text!r}")
+    return {"min_cutoff": min_cutoff, "beta": beta}
+
+
+def progress(args) -> bool:
+    """Progress bars only for a person watching a terminal."""
+    return not args.quiet and sys.stderr.isatty()
+
+
+def say(args, text: str) -> None:
+    if not args.quiet:
+        print(text, flush=True)
+
+
+def describe_keys(keys) -> str:
+    """``upper: frames 3, 17, ...; lower: ...`` (``take:frame`` when the keys come from several takes)."""
+    several = len(set(keys.takes)) > 1
+    where = [f"{t}:{f}" if several else str(f) for t, f in zip(keys.takes, keys.frames)]
+    parts = [f"{r}: frames {', '.join(where[k] for k in keys.keys_of(r))}" for r in keys.regions]
+    return "; ".join(parts)

@@ -1,0 +1,111 @@
+"""``keyshape retarget``: drive a rig with the weights and write the animation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..exceptions import InputError
+
+DESCRIPTION = (
+    "Apply the weights to a rig: targets named after the key shapes, or any targets through a "
+    "mapping (--map). Writes each output in the format its suffix (or --format) names: .glb "
+    "(a glTF rig's file kept whole, with a morph-weight animation added), .usd/.usda/.usdc/"
+    ".usdz (UsdSkel; a USD rig's stage kept whole), .csv (target weights) or --format livelink "
+    "(Live Link Face CSV for ARKit-named targets). With --track, the head rotation is written too."
+)
+EPILOG = """\
+mapping file (JSON, gains >= 0; a key may drive several targets):
+  {"lower_03": {"jawOpen": 0.8, "mouthFunnel": 0.3}, "upper_01": {"browInnerUp_L": 1.0}}
+examples:
+  keyshape retarget weights.csv --rig hero.glb --track track.npz -o hero_anim.glb
+  keyshape retarget weights.csv --rig ict/ --rig-unit cm --map arkit.json -o face.usda -o face.glb
+  keyshape retarget weights.csv --map arkit.json --format livelink -o take_livelink.csv
+"""
+
+
+def add_arguments(p) -> None:
+    p.epilog = EPILOG
+    p.add_argument("weights", type=Path, help="weights CSV from `keyshape solve`")
+    p.add_argument("--rig", type=Path, default=None,
+                   help="folder of OBJs (neutral.obj + <target>.obj), a single .obj, a .glb/.gltf with "
+                        "named morph targets, or a USD file with UsdSkel blend shapes; required except "
+                        "for CSV outputs through --map")
+    p.add_argument("--map", type=Path, default=None, metavar="MAP.json",
+                   help="key -> targets gains (JSON); default: each key drives the target of its name")
+    p.add_argument("--track", type=Path, default=None,
+                   help="track file: also animate the head rotation (and the eyes, where the rig "
+                        "has eye nodes, and in Live Link Face CSV)")
+    p.add_argument("--allow-extra", action="store_true",
+                   help="without --map: let rig targets that no key drives stay at 0 (default: an error "
+                        "listing them)")
+    p.add_argument("--format", choices=("glb", "usd", "csv", "livelink"), default=None,
+                   help="output format for every -o (default: from each suffix; livelink must be asked for)")
+    p.add_argument("--rig-unit", default="m", metavar="UNIT",
+                   help="length unit of OBJ rigs: m (default), cm, mm, in, ft or metres per unit")
+    p.add_argument("--head", default=None, metavar="NODE",
+                   help="glTF node to turn with the head (default: a joint or node named like 'head' "
+                        "above the face meshes)")
+    p.add_argument("-o", "--output", type=Path, required=True, action="append", metavar="OUT",
+                   help="output file; give -o several times for several files")
+
+
+def run(args) -> None:
+    from ..io import Format, export, format_of
+    from ..io.weights_csv import load_weights_csv
+    from ..targets import retarget
+
+    formats = [format_of(out, args.format) for out in args.output]
+    weights = load_weights_csv(args.weights)
+    rig = _rig(args, formats, Format)
+    anim = retarget(weights, _mapping(args, weights, rig))
+    poses, gaze = _poses(args, weights)
+    eyes = gaze.rotations() if gaze is not None else None
+    source = args.rig if rig is not None and args.rig.is_file() and args.rig.suffix.lower() != ".obj" else None
+    for out, chosen in zip(args.output, formats):
+        export(anim, out, rig=rig, poses=poses, format=chosen, source=source, head=args.head,
+               eyes=eyes)
+        if not args.quiet:
+            print(_summary(out, chosen, anim, Format))
+
+
+def _rig(args, formats, Format):
+    from ..io.rig import load_rig, parse_unit
+
+    if args.rig is not None:
+        return load_rig(args.rig, unit=parse_unit(args.rig_unit))
+    if args.map is None or any(f not in (Format.CSV, Format.LIVELINK) for f in formats):
+        raise InputError("--rig is required (only CSV and Live Link outputs through --map can do without)")
+    return None
+
+
+def _mapping(args, weights, rig):
+    from ..targets import Mapping
+
+    if args.map is not None:
+        return Mapping.from_file(args.map, targets=None if rig is None else rig.names)
+    return Mapping.by_name(weights.names, rig.names, allow_extra=args.allow_extra)
+
+
+def _poses(args, weights):
+    """(head poses, gaze) from --track, or (None, None)."""
+    if args.track is None:
+        return None, None
+    from ..app import head_and_gaze
+    from ..io.track import load_track
+
+    track = load_track(args.track)
+    if track.n_frames != weights.n_frames:
+        raise InputError(f"{args.track}: has {track.n_frames} frames but {args.weights} has {weights.n_frames}")
+    return head_and_gaze(track)
+
+
+def _summary(out, chosen, anim, Format) -> str:
+    text = f"{out}: {anim.n_channels} targets animated over {anim.n_frames} frames ({chosen.value})"
+    if chosen is Format.LIVELINK:
+        from ..io.livelink import livelink_columns
+
+        sources, unused = livelink_columns(anim.names)
+        text += f"; {len(sources)} of 52 ARKit coefficients"
+        if unused:
+            text += f"; not ARKit, left out: {unused}"
+    return text

@@ -1,0 +1,70 @@
+"""``keyshape run``: every stage in one go, video to an animated character and its report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ._options import (
+    add_capture_options,
+    add_correspondence_option,
+    add_key_options,
+    add_normalize_option,
+    add_solve_options,
+    capture_kwargs,
+    describe_keys,
+    progress,
+    say,
+    solve_kwargs,
+)
+
+DESCRIPTION = ("Track, discover keys, solve and retarget in one go. Without --rig the character is "
+               "keyshape's stylised head, with target shapes proposed from the key shapes.")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("video", type=Path, help="video file or folder of images")
+    p.add_argument("--rig", type=Path, default=None,
+                   help="character: OBJ folder, .glb/.gltf (kept whole, animation added) or USD, with "
+                        "targets named after the keys (e.g. from `keyshape sculpt`) or --map")
+    p.add_argument("--map", type=Path, default=None, metavar="MAP.json",
+                   help="key -> rig target gains (JSON), for rigs with their own shape set")
+    p.add_argument("--keys", type=Path, default=None, metavar="KEYS.json",
+                   help="reuse this key set (e.g. shared across takes) instead of discovering one")
+    p.add_argument("--auto-targets", action="store_true",
+                   help="no sculpting: propose the rig's target shapes from the key shapes (or, for "
+                        "a rig with its own blendshapes, a key -> shape mapping); see "
+                        "docs/auto-targets.md. Also writes the correspondence used (and, for such a rig, "
+                        "map.json) to OUTDIR, to edit and pass back")
+    add_correspondence_option(p, when="with --auto-targets: ")
+    add_normalize_option(p, when="with --auto-targets on a rig with its own blendshapes: ")
+    add_capture_options(p)
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
+    add_key_options(p)
+    add_solve_options(p)
+    p.add_argument("--no-preview", action="store_true",
+                   help="skip the side-by-side preview video (pictures and report are still written)")
+
+
+def check(parser, args) -> None:
+    """Usage errors argparse cannot see (exit code 2)."""
+    if not args.auto_targets and (args.correspondence or args.normalize):
+        parser.error("--correspondence and --normalize only apply with --auto-targets")
+
+
+def run(args) -> None:
+    from ..app import RunOptions, run_take
+
+    options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
+                         n_keys=args.count, max_error=args.max_error, method=args.method,
+                         neutral=args.neutral, auto_targets=args.auto_targets,
+                         correspondence=args.correspondence, normalize=args.normalize,
+                         capture=capture_kwargs(args), preview=not args.no_preview,
+                         **solve_kwargs(args))
+    summary = run_take(args.video, args.output, options, progress=progress(args))
+    keys = summary.keys
+    say(args, f"{args.video.name}: {summary.n_frames} frames, face in {100 * summary.detection_rate:.1f} %, "
+              f"neutral frame {keys.neutral_frame}")
+    say(args, f"keys: {describe_keys(keys)}")
+    say(args, f"fit: RMS error {summary.error_pct:.2f} % of the inter-ocular distance; gaps: {summary.gaps}")
+    say(args, f"wrote {args.output}/: {', '.join(summary.files)} in {summary.seconds:.1f} s")
+    say(args, f"see it: open {args.output / 'report.html'} or run `keyshape view {args.output}`")

@@ -1,0 +1,83 @@
+"""``keyshape sculpt``: write the sculpt kit (character with one target per key, contact sheet, README)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ..exceptions import InputError
+
+DESCRIPTION = (
+    "Write KIT/sculpt.glb (the character with one morph target per key shape, named after it, each "
+    "starting as the neutral), KIT/keys.png (the key frames from the video with the landmarks, region "
+    "highlighted) and KIT/README.md. Sculpt the targets, export a .glb, and `keyshape retarget` drives "
+    "it as it is."
+)
+EPILOG = """\
+examples:
+  keyshape sculpt out/keys.json --rig hero.glb -o kit/            # video and track from out/take.json
+  keyshape sculpt keys.json --rig head.obj --rig-unit cm --video take.mp4 --track track.npz -o kit/
+"""
+
+
+def add_arguments(p) -> None:
+    p.epilog = EPILOG
+    p.add_argument("keys", type=Path, help="key file from `keyshape keys` (or `run`)")
+    p.add_argument("--rig", type=Path, required=True, metavar="NEUTRAL",
+                   help="the character: .glb/.gltf (kept whole), .obj, an OBJ rig folder or a USD rig")
+    p.add_argument("--video", type=Path, default=None,
+                   help="the take's video (default: the one named in take.json beside KEYS.json)")
+    p.add_argument("--track", type=Path, default=None,
+                   help="the take's track (default: track.npz beside KEYS.json, else the video is tracked)")
+    p.add_argument("--rig-unit", default="m", metavar="UNIT",
+                   help="length unit of OBJ characters: m (default), cm, mm, in, ft or metres per unit")
+    p.add_argument("--mesh", action="append", default=None, metavar="NAME",
+                   help="glTF mesh to put the targets on (repeatable; default: the meshes with morph "
+                        "targets, else all)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="KIT/")
+
+
+def run(args) -> None:
+    from ..app import write_sculpt_kit
+    from ..io.keys_json import load_keys
+    from ..io.rig import parse_unit
+
+    keys = load_keys(args.keys)
+    video = _video(args)
+    track = _track(args, video)
+    kit = write_sculpt_kit(keys, args.rig, args.output, track=track, video=video,
+                           unit=parse_unit(args.rig_unit), meshes=_meshes(args.mesh))
+    if not args.quiet:
+        print(f"{kit.folder}: {kit.glb.name} ({keys.n_keys} targets to sculpt), {kit.sheet.name}, "
+              f"{kit.readme.name}")
+
+
+def _video(args) -> Path:
+    if args.video is not None:
+        return args.video
+    info = args.keys.parent / "take.json"
+    if info.is_file():
+        try:
+            return Path(json.loads(info.read_text())["video"])
+        except (ValueError, KeyError, TypeError):
+            raise InputError(f"{info}: has no readable \"video\" entry; give --video") from None
+    raise InputError(f"give --video: the take's video (no take.json beside {args.keys})")
+
+
+def _track(args, video: Path):
+    from ..io.track import load_track
+
+    if args.track is not None:
+        return load_track(args.track)
+    beside = args.keys.parent / "track.npz"
+    if beside.is_file():
+        return load_track(beside)
+    from ..capture import track_video
+
+    return track_video(video, progress=not args.quiet)
+
+
+def _meshes(names):
+    if names is None:
+        return None
+    return [int(n) if n.isdigit() else n for n in names]

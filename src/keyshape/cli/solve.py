@@ -1,0 +1,28 @@
+"""``keyshape solve``: the non-negative weights of every frame on the key shapes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ._options import add_solve_options, say, solve_kwargs
+
+DESCRIPTION = ("Write every frame as neutral + a non-negative blend of the key shapes' deltas, per region "
+               "(exact batched NNLS).")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("track", type=Path, help="track file (.npz)")
+    p.add_argument("keys", type=Path, help="key file from `keyshape keys`")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="WEIGHTS.csv")
+    add_solve_options(p)
+
+
+def run(args) -> None:
+    from ..app import solve_take
+    from ..io import load_keys, load_track, save_weights_csv
+
+    track = load_track(args.track)
+    keys = load_keys(args.keys)
+    solved = solve_take(track, keys, **solve_kwargs(args))
+    save_weights_csv(solved.weights, args.output)
+    say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys; {solved.gaps}")

@@ -1,0 +1,15 @@
+"""Stage 4, decompose: every frame as the neutral plus a non-negative blend of the key shapes.
+
+* :func:`solve_weights` — a take on its key shapes, region by region (the public entry);
+* :func:`solve_nnls` — per-frame bounded NNLS (Lawson & Hanson; block principal pivoting);
+* :func:`solve_spacetime` — the whole take at once with zero-lag temporal smoothness (ADMM with a
+  duality certificate, finished by Newton / active-set steps).
+
+Private modules: ``_solve`` (the public functions and their checks), ``_nnls`` and ``_reduced``
+(batched per-frame NNLS), ``_spacetime``, ``_sequence`` and ``_activeset`` (the smoothed solve),
+``_kernels`` and ``_kernels_nnls`` (the numba-compiled kernels; numba is imported only there).
+"""
+
+from ._solve import solve_nnls, solve_spacetime, solve_weights
+
+__all__ = ["solve_weights", "solve_nnls", "solve_spacetime"]

@@ -1,0 +1,137 @@
+"""Write an animation in the format a file name (or an explicit format) asks for.
+
+============  ===============================  ==================================================
+format        suffixes                         writer
+============  ===============================  ==================================================
+``glb``       ``.glb``                         :func:`keyshape.io.gltf.animate_gltf` onto the
+                                               original glTF rig when there is one, else
+                                               :func:`keyshape.io.gltf.write_glb`
+``usd``       ``.usd`` ``.usda`` ``.usdc``     :func:`keyshape.io.usd.animate_usd` onto the
+              ``.usdz``                        original USD rig when there is one, else
+                                               :func:`keyshape.io.usd.write_usd` (``usd-core``)
+``csv``       ``.csv``                         :func:`keyshape.io.weights_csv.save_weights_csv`
+``livelink``  (``--format livelink``; a        :func:`keyshape.io.livelink.write_livelink_csv`
+              ``.csv`` name)
+============  ===============================  ==================================================
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from pathlib import Path
+
+from ..containers import Poses, Rig, Weights
+from ..exceptions import InputError
+
+__all__ = ["Format", "export", "format_of"]
+
+
+class Format(StrEnum):
+    """The export formats."""
+
+    GLB = "glb"
+    USD = "usd"
+    CSV = "csv"
+    LIVELINK = "livelink"
+
+
+_SUFFIXES = {".glb": Format.GLB, ".usd": Format.USD, ".usda": Format.USD, ".usdc": Format.USD,
+             ".usdz": Format.USD, ".csv": Format.CSV}
+_NEEDS_RIG = (Format.GLB, Format.USD)
+
+
+def format_of(path, format: str | Format | None = None) -> Format:
+    """The format for ``path``: ``format`` when given (checked against the suffix), else the suffix.
+
+    Examples
+    --------
+    >>> format_of("take.usda"), format_of("take.csv", "livelink")
+    (<Format.USD: 'usd'>, <Format.LIVELINK: 'livelink'>)
+    """
+    suffix = Path(path).suffix.lower()
+    if format is None:
+        if suffix not in _SUFFIXES:
+            raise InputError(f"cannot tell the format of {str(path)!r} from its suffix; use one of "
+                             f"{sorted(_SUFFIXES)} or give a format ({', '.join(f.value for f in Format)})")
+        return _SUFFIXES[suffix]
+    try:
+        chosen = Format(str(getattr(format, "value", format)).lower())
+    except ValueError:
+        raise InputError(f"unknown format {format!r}; choose from {', '.join(f.value for f in Format)}") from None
+    expected = Format.CSV if chosen is Format.LIVELINK else chosen
+    if _SUFFIXES.get(suffix) is not expected:
+        wanted = sorted(s for s, f in _SUFFIXES.items() if f is expected)
+        raise InputError(f"{str(path)!r}: format {chosen.value} is written to a file ending in {' or '.join(wanted)}")
+    return chosen
+
+
+def _source_kind(source) -> Format | None:
+    """GLB for a glTF source file, USD for a USD one, else None (an OBJ rig: nothing to keep)."""
+    suffix = "" if source is None else Path(source).suffix.lower()
+    if suffix in (".glb", ".gltf"):
+        return Format.GLB
+    return Format.USD if suffix in (".usd", ".usda", ".usdc", ".usdz") else None
+
+
+def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | None = None,
+           format: str | Format | None = None, source=None, head: str | None = None,
+           eyes=None) -> Path:
+    """Write ``animation`` to ``path`` in the chosen format, atomically.
+
+    Parameters
+    ----------
+    animation : Weights
+        Target weights ``(n_frames, n_targets)``, named by rig targets (from
+        :func:`keyshape.targets._mapping.retarget`): in rig order for ``glb`` and ``usd`` written from
+        ``rig``; any subset of the original file's targets for ``glb`` onto ``source``.
+    path : str or Path
+    rig : Rig, optional, keyword-only
+        Needed for ``usd``, and for ``glb`` without ``source``.
+    poses : Poses, optional, keyword-only
+        Head poses (image convention) for ``glb``, ``usd`` and ``livelink``; ignored by ``csv``.
+    format : str or Format, optional, keyword-only
+        Default: from the suffix (``livelink`` must be asked for).
+    source : str or Path, optional, keyword-only
+        The file the rig came from: ``glb`` output onto a ``.glb``/``.gltf`` source and ``usd``
+        output onto a USD source keep that file whole and add the animation
+        (:func:`keyshape.io.gltf.animate_gltf`, :func:`keyshape.io.usd.animate_usd`).
+    head : str, optional, keyword-only
+        The node of ``source`` to turn with the head (default: found by name; see
+        :func:`keyshape.io.gltf.animate_gltf`).
+    eyes : (n_frames, 2, 3, 3) float, optional, keyword-only
+        Eye rotations relative to the head (left eye first), for ``livelink`` and for ``glb`` onto
+        ``source`` (its eye nodes); files keyshape builds have no eyes and ignore them.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    InputError
+        Unknown format or suffix, or ``rig`` missing where it is needed.
+    """
+    chosen = format_of(path, format)
+    kind = _source_kind(source)
+    glb_source, usd_source = kind is Format.GLB, kind is Format.USD
+    if chosen in _NEEDS_RIG and rig is None and kind is not chosen:
+        raise InputError(f"writing {chosen.value} needs the rig")
+    if chosen is Format.GLB:
+        from .gltf import animate_gltf, write_glb
+
+        if glb_source:
+            return animate_gltf(source, animation, path, poses=poses, head=head, eyes=eyes)
+        return write_glb(path, rig, animation, poses=poses)
+    if chosen is Format.USD:
+        from .usd import animate_usd, write_usd
+
+        if usd_source:
+            return animate_usd(source, animation, path, poses=poses)
+        return write_usd(path, rig, animation, poses=poses)
+    if chosen is Format.LIVELINK:
+        from .livelink import write_livelink_csv
+
+        return write_livelink_csv(path, animation, poses=poses, eyes=eyes)
+    from .weights_csv import save_weights_csv
+
+    return save_weights_csv(animation, path)

@@ -1,0 +1,16 @@
+"""Stage 3, key shapes: choose K real frames per region that span the performance.
+
+* :func:`find_keyshapes` — the search (``spa``, successive projection, by default; the paper's
+  ``spread`` and ``hull`` on the principal components), K fixed or chosen from an error target;
+* :func:`error_vs_k` — reconstruction error against K, for every method (the report's curve).
+
+Private modules: ``_search`` (the public function and its checks), ``_select`` (the greedy
+search and its objective), ``_select_pca`` (the paper's PCA methods and the candidate pool),
+``_select_exchange`` (key exchange refinement), ``_kcurve`` (error against K).
+"""
+
+from ._kcurve import CURVE_METHODS, KCurve, error_vs_k
+from ._search import MAX_CANDIDATES, MAX_ERROR, MAX_KEYS, METHODS, KChoice, choose_n_keys, find_keyshapes
+
+__all__ = ["find_keyshapes", "choose_n_keys", "KChoice", "error_vs_k", "KCurve",
+           "METHODS", "CURVE_METHODS", "MAX_ERROR", "MAX_KEYS", "MAX_CANDIDATES"]

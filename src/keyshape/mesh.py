@@ -1,0 +1,140 @@
+"""Geometry on a triangle mesh: closest surface points, welded vertices, connected parts.
+
+:func:`snap_to_surface` gives the closest point of a mesh to each query point as a triangle
+and barycentric weights (the form a :class:`~keyshape.targets._correspond.Correspondence` stores);
+:func:`weld_vertices` merges vertices split along texture seams; :func:`mesh_components`
+labels the connected parts of a mesh (the face, the eyeballs, the teeth), largest first.
+Used by :mod:`keyshape.targets._correspond` (which re-exports them), the automatic correspondence
+and expression transfer.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+from .exceptions import InputError
+
+__all__ = ["mesh_components", "snap_to_surface", "weld_vertices"]
+
+
+def snap_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *,
+                    candidates: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Closest point on a triangle mesh to each of ``points``, as barycentric coordinates.
+
+    Candidate triangles are those around the ``candidates`` nearest vertices of each point;
+    the closest point on a triangle is the projection onto its plane when that falls inside,
+    else the closest point on its edges (Ericson 2005, §5.1.5).
+
+    Parameters
+    ----------
+    points : (n_points, 3) float
+    vertices : (n_vertices, 3) float
+    faces : (n_faces, 3) int
+    candidates : int, keyword-only
+
+    Returns
+    -------
+    triangles : (n_points, 3) int
+    weights : (n_points, 3) float, barycentric, rows sum to 1
+
+    References
+    ----------
+    .. [1] C. Ericson, *Real-Time Collision Detection*, Morgan Kaufmann 2005, section 5.1.5.
+
+    Examples
+    --------
+    >>> triangle = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])  # in the plane z = 0
+    >>> tri, w = snap_to_surface(np.array([[0.25, 0.25, 1.0]]), triangle, np.array([[0, 1, 2]]))
+    >>> tri.tolist(), w.round(2).tolist()
+    ([[0, 1, 2]], [[0.5, 0.25, 0.25]])
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    vertices, faces = np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
+    used = np.unique(faces)  # only vertices of some face can be closest
+    if len(used) == 0:
+        raise InputError("cannot snap points to a mesh without faces")
+    k = min(candidates, len(used))
+    _, near = cKDTree(vertices[used]).query(points, k=k)
+    near = used[np.asarray(near).reshape(len(points), k)]
+    incident = _vertex_faces(faces, len(vertices))
+    triangles = np.zeros((len(points), 3), dtype=np.int64)
+    weights = np.zeros((len(points), 3))
+    for i, point in enumerate(points):
+        options = np.unique(incident[near[i]].indices)
+        bary, dist = _closest_on_triangles(point, *(vertices[faces[options, j]] for j in range(3)))
+        best = int(np.argmin(dist))
+        triangles[i], weights[i] = faces[options[best]], bary[best]
+    return triangles, weights
+
+
+def _vertex_faces(faces: np.ndarray, n_vertices: int) -> sparse.csr_matrix:
+    """Vertex -> incident faces, as a sparse ``(n_vertices, n_faces)`` incidence matrix."""
+    rows = faces.ravel()
+    cols = np.repeat(np.arange(len(faces)), 3)
+    return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, len(faces)))
+
+
+def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
+    """Barycentric coordinates ``(n, 3)`` and squared distance ``(n,)`` of the closest points to ``p``."""
+    ab, ac, ap = b - a, c - a, p - a
+    # plane projection: solve [ab·ab ab·ac; ab·ac ac·ac] [v w]ᵀ = [ab·ap ac·ap]ᵀ
+    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+    d20, d21 = (ap * ab).sum(1), (ap * ac).sum(1)
+    det = d00 * d11 - d01 * d01
+    safe = np.where(np.abs(det) > 1e-300, det, 1.0)
+    v, w = (d11 * d20 - d01 * d21) / safe, (d00 * d21 - d01 * d20) / safe
+    inside = (v >= 0) & (w >= 0) & (v + w <= 1) & (np.abs(det) > 1e-300)
+    options = [np.stack([1 - v - w, v, w], axis=1)]
+    for i, j in ((0, 1), (1, 2), (2, 0)):  # the three edges
+        options.append(_closest_on_edge(p, (a, b, c)[i], (a, b, c)[j], i, j))
+    corners = np.stack([a, b, c], axis=1)
+    dists = np.stack([((p - np.einsum("nj,njd->nd", o, corners)) ** 2).sum(1) for o in options], axis=1)
+    dists[~inside, 0] = np.inf
+    pick = np.argmin(dists, axis=1)
+    bary = np.stack(options, axis=1)[np.arange(len(a)), pick]
+    return bary, dists[np.arange(len(a)), pick]
+
+
+def _closest_on_edge(p, start, end, i: int, j: int) -> np.ndarray:
+    """Barycentric ``(n, 3)`` of the closest point to ``p`` on the segments ``start → end``."""
+    edge = end - start
+    length2 = (edge * edge).sum(1)
+    t = np.clip(((p - start) * edge).sum(1) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+    bary = np.zeros((len(start), 3))
+    bary[:, i], bary[:, j] = 1 - t, t
+    return bary
+
+
+def mesh_components(vertices: np.ndarray, faces: np.ndarray, *, weld: float = 1e-6) -> np.ndarray:
+    """Connected component of every vertex ``(n_vertices,) int``, after welding coincident vertices.
+
+    glTF meshes split vertices along texture seams; welding (positions equal within ``weld``
+    times the mesh's size) keeps a seam from splitting a face in two. Components are numbered
+    by decreasing size.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    welded, n = weld_vertices(vertices, tolerance=weld)
+    edges = welded[np.asarray(faces, dtype=np.int64)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)]
+    graph = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    order = np.argsort(-np.bincount(label), kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[label][welded]
+
+
+def weld_vertices(vertices: np.ndarray, *, tolerance: float = 1e-6) -> tuple[np.ndarray, int]:
+    """Index of each vertex's welded representative ``(n_vertices,) int`` and the number of them.
+
+    Vertices closer than ``tolerance`` times the bounding-box diagonal (on a grid) share one index.
+    """
+    vertices = np.asarray(vertices, dtype=float)
+    size = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 1.0
+    step = max(size * tolerance, 1e-12)
+    _, index = np.unique(np.round(vertices / step).astype(np.int64), axis=0, return_inverse=True)
+    index = index.reshape(-1)
+    return index, int(index.max(initial=-1)) + 1

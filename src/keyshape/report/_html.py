@@ -1,0 +1,133 @@
+"""The take report as one self-contained HTML page: :func:`write_report`.
+
+Tables of the numbers (:func:`keyshape.report._fit.take_numbers`), the pictures embedded as
+base64 data URIs, the preview video linked or embedded, the key-shape list and how the
+numbers are defined; the numbers again as JSON in a ``<script>`` block for tools to read.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+from ..containers import KeyShapes
+from ..io.atomic import atomic_path
+
+__all__ = ["write_report"]
+
+
+def _data_uri(path: Path, mime: str) -> str:
+    return f"data:{mime};base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
+
+
+_CSS = """
+body{font:15px/1.45 system-ui,sans-serif;margin:0 auto;max-width:1180px;padding:18px 24px;color:#1d1f23}
+h1{font-size:22px;margin:6px 0 2px} h2{font-size:17px;margin:26px 0 8px;border-bottom:1px solid #ddd}
+.sub{color:#666;margin:0 0 12px} table{border-collapse:collapse;margin:6px 0}
+td,th{padding:3px 10px;border-bottom:1px solid #eee;text-align:left} th{background:#f5f5f7}
+td.n{text-align:right;font-variant-numeric:tabular-nums} img,video{max-width:100%;border:1px solid #ddd}
+.note{color:#555;font-size:13px} code{background:#f3f3f5;padding:0 3px}
+"""
+
+
+def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: dict[str, Path],
+                 video: str | None = None, notes: list[str] | None = None) -> Path:
+    """Write a self-contained HTML report, atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``report.html``.
+    numbers : dict
+        From :func:`take_numbers`.
+    keys : KeyShapes
+    title : str, keyword-only
+    images : dict caption -> Path, keyword-only
+        PNGs to embed (as base64 data URIs), in order.
+    video : str, optional, keyword-only
+        The preview video as a path relative to the report, or a ``data:`` URI.
+    notes : list of str, optional, keyword-only
+        Extra remarks (e.g. a missing source video), shown under the title.
+
+    Returns
+    -------
+    Path
+    """
+    parts = [f"<h1>{html.escape(title)}</h1>", _subtitle(numbers)]
+    parts += [f'<p class="note">{html.escape(n)}</p>' for n in notes or []]
+    parts += ["<h2>Numbers</h2>", _numbers_table(numbers), _regions_table(numbers)]
+    if video:
+        parts += ["<h2>Preview</h2>",
+                  f'<video controls loop muted preload="metadata" src="{html.escape(video)}"></video>',
+                  ('<p class="note">Left: the source video with the tracked landmarks (one colour '
+                   "per region). Right: the character driven by the same weights and head rotation. "
+                   "Bottom: the current key-shape weights.</p>")]
+    for caption_text, png in images.items():
+        parts += [f"<h2>{html.escape(caption_text)}</h2>",
+                  f'<img alt="{html.escape(caption_text)}" src="{_data_uri(png, "image/png")}">']
+    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"]), _definitions(numbers)]
+    data = json.dumps(numbers).replace("</", "<\\/")
+    document = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+                f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>\n"
+                + "\n".join(parts)
+                + f'\n<script type="application/json" id="numbers">{data}</script>\n</body></html>\n')
+    with atomic_path(path) as tmp:
+        tmp.write_text(document, encoding="utf-8")
+    return Path(path)
+
+
+def _subtitle(n: dict) -> str:
+    return (f'<p class="sub">{n["frames"]} frames at {n["fps"]:g} fps ({n["duration_s"]:g} s) · '
+            f'{n["n_keys"]} key shapes ({html.escape(str(n["method"]))}) · neutral frame {n["neutral_frame"]}</p>')
+
+
+def _numbers_table(n: dict) -> str:
+    rows = [("frames", n["frames"]), ("frames with a face", n["frames_with_face"]),
+            ("detection rate", f'{n["detection_rate"]:.2f} %'), ("gaps (runs of frames without a face)", n["gaps"]),
+            ("longest gap", f'{n["longest_gap_frames"]} frames ({n["longest_gap_s"]:g} s)'),
+            ("neutral frame", n["neutral_frame"]), ("key shapes in all", n["n_keys"])]
+    body = "".join(f'<tr><th>{html.escape(k)}</th><td class="n" data-key="{html.escape(k)}">{v}</td></tr>'
+                   for k, v in rows)
+    return f'<table id="take">{body}</table>'
+
+
+def _regions_table(n: dict) -> str:
+    unit = html.escape(n["error_unit"])
+    head = (f"<tr><th>region</th><th>K</th><th>landmarks</th><th>RMS error ({unit})</th>"
+            f"<th>95th percentile</th><th>max</th><th>frames outside the hull</th></tr>")
+    rows = "".join(
+        f'<tr data-region="{html.escape(r)}"><th>{html.escape(r)}</th><td class="n">{v["keys"]}</td>'
+        f'<td class="n">{v["landmarks"]}</td><td class="n">{_fmt(v["rms_error"])}</td>'
+        f'<td class="n">{_fmt(v["p95_error"])}</td><td class="n">{_fmt(v["max_error"])}</td>'
+        f'<td class="n">{v["frames_outside_hull"]}</td></tr>' for r, v in n["regions"].items())
+    return f'<table id="regions">{head}{rows}</table>'
+
+
+def _fmt(value) -> str:
+    return "–" if value is None else f"{value:.2f}"
+
+
+def _keys_table(keys: KeyShapes, fps: float) -> str:
+    rows = "".join(f"<tr><td>{html.escape(keys.names[k])}</td><td>{html.escape(keys.key_regions[k])}</td>"
+                   f'<td class="n">{int(keys.frames[k])}</td><td class="n">{keys.frames[k] / fps:.2f} s</td>'
+                   f"<td>{html.escape(keys.takes[k])}</td></tr>" for k in range(keys.n_keys))
+    return ('<table id="keys"><tr><th>name</th><th>region</th><th>frame</th><th>time</th><th>take</th></tr>'
+            f"{rows}</table>")
+
+
+def _definitions(n: dict) -> str:
+    unit = html.escape(n["error_unit"])
+    return (
+        "<h2>How the numbers are defined</h2><ul class=\"note\">"
+        f"<li><b>Error</b>: per frame and region, the RMS over the region's landmarks of the distance between "
+        f"the aligned landmarks and the blend the weights reach (neutral + Σ w·δ), in {unit} (the neutral "
+        "face's outer eye corners). The table gives the RMS over all frames with a face.</li>"
+        "<li><b>Cost of w ≥ 0</b> (dotted): √(error² − error<sub>ls</sub>²), where error<sub>ls</sub> is the "
+        "residual of the best blend of the same key shapes with unconstrained weights — the part of the "
+        "error due to the weights being non-negative (and bounded or smoothed).</li>"
+        f"<li><b>Outside the hull</b>: frames whose cost of w ≥ 0 exceeds {n['hull_tolerance']:g} {unit}; "
+        "the key shapes reach them only with negative weights. They are shaded in the weight curves; "
+        "another key shape from among them would reduce the error.</li>"
+        "<li><b>Gaps</b>: maximal runs of consecutive frames in which no face was found.</li></ul>")

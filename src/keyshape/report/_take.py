@@ -1,0 +1,216 @@
+"""What a take found and how well it fits: numbers, pictures, preview, in one ``report.html``.
+
+:func:`write_take_extras` turns an output folder of ``keyshape run`` (``take.json``,
+``track.npz``, ``keys.json``, ``weights.csv``, ``animation.glb``) into ``preview.mp4``,
+``keyshapes.png``, ``weights.png`` (and ``error_vs_k.png`` when a table is given) and a
+self-contained ``report.html``: pictures embedded as data URIs, no network needed.
+
+This module reads the take folder and puts the pieces together. Fit quality
+(:func:`fit_quality`: the error per frame and region, the cost of w ≥ 0, frames outside
+the key-shape hull) and the report's numbers are defined in :mod:`keyshape.report._fit`;
+the HTML page is written by :func:`write_report` (:mod:`keyshape.report._html`). Both are
+re-exported here.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..containers import KeyShapes, Track, Weights
+from ..exceptions import InputError
+from ..schemes import stable_points
+from ._fit import HULL_TOLERANCE, FitQuality, face_scale, fit_quality, gap_runs, take_numbers
+from ._html import _data_uri, write_report
+
+__all__ = ["FitQuality", "fit_quality", "face_scale", "gap_runs", "take_numbers", "write_report",
+           "write_take_extras", "write_take_preview", "TakeExtras", "HULL_TOLERANCE"]
+
+
+@dataclass(frozen=True)
+class TakeExtras:
+    """What :func:`write_take_extras` wrote (None for what it could not make)."""
+
+    report: Path
+    preview: Path | None
+    pictures: dict[str, Path]
+    numbers: dict
+
+
+def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, backend: str = "auto",
+                      k_table: dict | None = None, tolerance: float = HULL_TOLERANCE,
+                      embed_video: bool = False) -> TakeExtras:
+    """Write ``preview.mp4``, the PNGs and ``report.html`` into an output folder of ``keyshape run``.
+
+    Parameters
+    ----------
+    outdir : str or Path
+        Holds ``take.json`` and the files it names (track, keys, weights, animation).
+    progress : bool, keyword-only
+        Show a progress bar while rendering the preview.
+    preview : bool, keyword-only
+        Render ``preview.mp4`` (the slow part).
+    backend : "auto", "gl" or "numpy", keyword-only
+        Renderer for the preview (see :func:`keyshape.render._backend.make_renderer`).
+    k_table : dict, optional, keyword-only
+        Error against K, ``{method: {region: (ks, errors)}}`` (see :func:`keyshape.report.plots.error_vs_k`),
+        errors in % of the inter-ocular distance; default: ``error_vs_k.json`` in ``outdir`` if present.
+    tolerance : float, keyword-only
+        See :func:`fit_quality`.
+    embed_video : bool, keyword-only
+        Embed the preview in ``report.html`` (base64) instead of linking ``preview.mp4`` beside it.
+
+    Returns
+    -------
+    TakeExtras
+    """
+    outdir = Path(outdir)
+    take = _load_take(outdir)
+    fit = fit_quality(take.aligned, take.keys, take.weights, tolerance=tolerance)
+    numbers = take_numbers(take.track, take.keys, fit)
+    pictures = _pictures(outdir, take, fit, k_table)
+    notes = [] if take.video is not None else [(f"The source video {take.info.get('video')!r} was not found: "
+                                                "landmarks are drawn on a blank background.")]
+    movie = _preview(outdir, take, progress=progress, backend=backend) if preview else None
+    if not preview and (outdir / "preview.mp4").is_file():
+        movie = outdir / "preview.mp4"  # from an earlier run
+    if preview and movie is None:
+        notes.append(f"No preview: {take.info['files'].get('animation', 'animation.glb')} is missing.")
+    report = write_report(outdir / "report.html", numbers, take.keys, title=f"keyshape · {take.name}",
+                          images={_CAPTIONS[k]: p for k, p in pictures.items()},
+                          video=_video_source(movie, embed_video), notes=notes)
+    return TakeExtras(report, movie, pictures, numbers)
+
+
+def _video_source(movie: Path | None, embed: bool) -> str | None:
+    if movie is None:
+        return None
+    return _data_uri(movie, "video/mp4") if embed else movie.name
+
+
+_CAPTIONS = {"keyshapes": "Key shapes: the sculpt list", "weights": "Weights over time and fit error",
+             "error_vs_k": "Error against the number of key shapes"}
+
+
+@dataclass(frozen=True)
+class _Take:
+    info: dict
+    name: str
+    video: Path | None
+    track: Track
+    keys: KeyShapes
+    weights: Weights
+    aligned: Track
+
+
+def _load_take(outdir: Path) -> _Take:
+    from ..alignment import align
+    from ..io.keys_json import load_keys
+    from ..io.take import load_take_info
+    from ..io.track import load_track
+    from ..io.weights_csv import load_weights_csv
+
+    info = load_take_info(outdir)
+    files = info.get("files") or {}
+    track = load_track(outdir / files.get("track", "track.npz"))
+    keys = load_keys(outdir / files.get("keys", "keys.json"))
+    weights = load_weights_csv(outdir / files.get("weights", "weights.csv"))
+    if weights.n_frames != track.n_frames:
+        raise InputError(f"{outdir}: the weights have {weights.n_frames} frames but the track has {track.n_frames}")
+    aligned, _ = align(track, reference=keys.neutral, stable=_stable(keys))
+    video = Path(info["video"]) if info.get("video") and Path(info["video"]).is_file() else None
+    name = Path(info["video"]).name if info.get("video") else outdir.name
+    return _Take(info, name, video, track, keys, weights, aligned)
+
+
+def _pictures(outdir: Path, take: _Take, fit: FitQuality, k_table) -> dict[str, Path]:
+    from . import plots
+
+    frames = [int(take.keys.neutral_frame), *take.keys.frames.tolist()]
+    images = _read_frames(take.video, frames)
+    names = (take.name, take.info.get("files", {}).get("track", "track.npz"))
+    out = {"keyshapes": plots.contact_sheet(take.keys, take.track, images, outdir / "keyshapes.png",
+                                            take=names),
+           "weights": plots.weight_curves(take.weights, take.keys, fit, outdir / "weights.png")}
+    k_table = k_table if k_table is not None else _read_k_table(outdir / "error_vs_k.json")
+    if k_table:
+        chosen = {r: len(take.keys.keys_of(r)) for r in take.keys.regions}
+        out["error_vs_k"] = plots.error_vs_k(k_table, outdir / "error_vs_k.png", unit=fit.unit, chosen=chosen)
+    return out
+
+
+def _read_frames(video: Path | None, frames: list[int]) -> dict[int, np.ndarray]:
+    """The video frames with the given indices (none without a video)."""
+    if video is None or not frames:
+        return {}
+    from ..capture.video import iter_frames
+
+    wanted, found = set(frames), {}
+    source = iter_frames(video)
+    try:
+        for index, (_, rgb) in enumerate(source):
+            if index in wanted:
+                found[index] = rgb
+            if index >= max(wanted):
+                break
+    finally:
+        source.close()
+    return found
+
+
+def _read_k_table(path: Path) -> dict | None:
+    """``{method: {region: {"ks": [...], "errors": [...]}}}`` from JSON, as (ks, errors) pairs."""
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        return {m: {r: (v["ks"], v["errors"]) for r, v in regions.items()} for m, regions in data.items()}
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise InputError(f"{path}: expected {{method: {{region: {{ks: [...], errors: [...]}}}}}} ({exc})") from None
+
+
+def write_take_preview(outdir, path=None, *, progress: bool = True, backend: str = "auto",
+                       height: int | None = None) -> Path:
+    """Render the preview video of an output folder of ``keyshape run``.
+
+    Parameters
+    ----------
+    outdir : str or Path
+        Holds ``take.json``, the track, keys, weights and ``animation.glb``.
+    path : str or Path, optional
+        Output MP4; default ``outdir / "preview.mp4"``.
+    progress, backend, height : keyword-only
+        See :func:`keyshape.render.preview.render_preview`.
+
+    Returns
+    -------
+    Path
+    """
+    outdir = Path(outdir)
+    movie = _preview(outdir, _load_take(outdir), path=path, progress=progress, backend=backend, height=height)
+    if movie is None:
+        raise InputError(f"{outdir}: no animation.glb to drive the character; run `keyshape run` first")
+    return movie
+
+
+def _preview(outdir: Path, take: _Take, *, path=None, progress: bool, backend: str,
+             height: int | None = None) -> Path | None:
+    from ..io.gltf import read_glb_animation, read_rig
+    from ..render.preview import render_preview, rotations_from_quaternions
+
+    glb = outdir / take.info["files"].get("animation", "animation.glb")
+    if not glb.is_file():
+        return None
+    rig, animation = read_rig(glb), read_glb_animation(glb)
+    order = [animation.names.index(n) for n in rig.names] if animation.names else list(range(rig.n_targets))
+    rotations = None if animation.rotations is None else rotations_from_quaternions(animation.rotations)
+    return render_preview(take.track, take.weights, rig, path or outdir / "preview.mp4", video=take.video,
+                          keys=take.keys, rig_weights=animation.weights[:, order], rotations=rotations,
+                          height=height, backend=backend, progress=progress)
+
+
+def _stable(keys: KeyShapes) -> np.ndarray:
+    return keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)

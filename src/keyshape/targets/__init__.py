@@ -1,0 +1,32 @@
+"""Stage 5, retarget: from key weights to a character's targets.
+
+* :class:`Mapping` and :func:`retarget` — key → target gains, by name or from ``MAP.json``;
+* :func:`auto_targets`, :func:`propose_targets`, :func:`propose_mapping` — no sculpting: the
+  character's version of every key shape (expression transfer), or a key → blendshape mapping
+  for a rig with shapes of its own;
+* :func:`transfer_expressions` — the transfer itself (deformation transfer on the mesh);
+* :class:`Correspondence`, :func:`find_correspondence`, :func:`read_correspondence` — where the
+  landmarks sit on the character (given in a file, or found on a render);
+* :func:`stylised_head`, :func:`default_character` — keyshape's built-in character.
+"""
+
+from ._character import Character, canonical_face, stylised_head
+from ._correspond import Correspondence, correspondence_from_dict, read_correspondence
+from ._correspond_auto import find_correspondence
+from ._mapping import Mapping, retarget
+from ._propose import (
+    AutoTargets,
+    auto_targets,
+    default_character,
+    propose_mapping,
+    propose_targets,
+    proposer,
+    resolve_correspondence,
+)
+from ._transfer import LandmarkMotion, feature_groups, landmark_motion, spread, transfer_expressions
+
+__all__ = ["Mapping", "retarget",
+           "AutoTargets", "auto_targets", "propose_targets", "propose_mapping", "proposer", "resolve_correspondence",
+           "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
+           "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",
+           "Character", "stylised_head", "canonical_face", "default_character"]

@@ -1,0 +1,316 @@
+"""Retargeting: carry key-shape weights over to a character's targets.
+
+The paper drives each sculpted target with the weight of the key shape it was sculpted
+for ("a smile for a smile"). A :class:`Mapping` generalises that to a non-negative
+matrix ``M (n_targets, n_keys)``: target weights are ``w_target = M · w_key`` per frame,
+so one key may drive several targets, each with its own gain.
+
+A mapping file (``--map MAP.json``) is JSON: ``{key: {target: gain, ...}, ...}``, e.g.
+``{"lower_03": {"jawOpen": 0.8, "mouthFunnel": 0.3}}``; the same object may be wrapped as
+``{"format": "keyshape-map", "version": 1, "gains": {...}}`` (what :meth:`Mapping.save`
+writes), or given as a matrix: ``{"keys": [...], "targets": [...], "matrix": [[...], ...]}``
+with one row per target.
+
+Retargeting carries weights only: it assumes nothing about the rig's scale, orientation or
+topology. The targets themselves say how far each vertex moves at weight 1; a key's gain scales
+that. Weights are not clipped (a gain above 1, or several keys on one target, may exceed 1).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..containers import Weights
+from ..exceptions import InputError, RigError
+
+__all__ = ["Mapping", "retarget"]
+
+
+def _names(source) -> tuple[str, ...]:
+    """Names from a sequence of str or from anything with ``.names`` (KeyShapes, Weights, Rig)."""
+    names = getattr(source, "names", source)
+    if isinstance(names, str):
+        raise InputError(f"expected a sequence of names; got the single string {names!r}")
+    return tuple(str(n) for n in names)
+
+
+@dataclass(frozen=True, eq=False)
+class Mapping:
+    """A key → target retargeting matrix.
+
+    Attributes
+    ----------
+    matrix : (n_targets, n_keys) float, ≥ 0
+        ``matrix[t, k]`` is the gain with which key ``k`` drives target ``t``.
+    sources : tuple of n_keys str
+        Key names (the columns).
+    targets : tuple of n_targets str
+        Rig target names (the rows).
+
+    Examples
+    --------
+    >>> m = Mapping.by_name(["smile", "blink"], ["blink", "smile"])
+    >>> m.matrix
+    array([[0., 1.],
+           [1., 0.]])
+    """
+
+    matrix: np.ndarray
+    sources: tuple[str, ...]
+    targets: tuple[str, ...]
+
+    def __post_init__(self):
+        sources, targets = _names(self.sources), _names(self.targets)
+        matrix = np.asarray(self.matrix, dtype=float)
+        if matrix.shape != (len(targets), len(sources)):
+            raise InputError(
+                f"matrix must have shape (n_targets, n_keys) = ({len(targets)}, {len(sources)}); "
+                f"got {matrix.shape}"
+            )
+        if not np.isfinite(matrix).all() or (matrix < 0).any():
+            raise InputError(f"mapping gains must be finite and >= 0; got min {np.nanmin(matrix, initial=0):g}")
+        for label, names in (("key", sources), ("target", targets)):
+            duplicates = sorted({n for n in names if names.count(n) > 1})
+            if duplicates:
+                raise InputError(f"{label} names must be unique; repeated: {duplicates}")
+        matrix = matrix.copy()
+        matrix.flags.writeable = False
+        object.__setattr__(self, "matrix", matrix)
+        object.__setattr__(self, "sources", sources)
+        object.__setattr__(self, "targets", targets)
+
+    n_keys = property(lambda self: self.matrix.shape[1])
+    n_targets = property(lambda self: self.matrix.shape[0])
+
+    @classmethod
+    def by_name(cls, keys, targets, *, allow_extra: bool = False) -> Mapping:
+        """Drive each target with the key of the same name, gain 1 (the paper's scheme).
+
+        Parameters
+        ----------
+        keys : sequence of str, or KeyShapes / Weights
+            Key names (anything with ``.names`` is accepted).
+        targets : sequence of str, or Rig
+            Rig target names, in rig order; the mapping's rows follow this order.
+        allow_extra : bool, keyword-only
+            Accept rig targets that no key drives (they stay at weight 0). By default
+            they are an error, so a misspelt target does not go silently unused.
+
+        Returns
+        -------
+        Mapping
+
+        Raises
+        ------
+        RigError
+            Listing keys without a same-named target and, unless ``allow_extra``,
+            targets without a same-named key.
+        """
+        keys, targets = _names(keys), _names(targets)
+        missing = [k for k in keys if k not in targets]
+        extra = [] if allow_extra else [t for t in targets if t not in keys]
+        if missing or extra:
+            raise RigError(_by_name_message(missing, extra))
+        matrix = np.array([[float(t == k) for k in keys] for t in targets]).reshape(len(targets), len(keys))
+        return cls(matrix, keys, targets)
+
+    @classmethod
+    def from_dict(cls, gains: dict, *, targets=None, sources=None) -> Mapping:
+        """A mapping from ``{key: {target: gain, ...}, ...}``.
+
+        Parameters
+        ----------
+        gains : dict of str -> dict of str -> float
+            Keys (columns, in dict order) and the targets each drives, with gains ≥ 0.
+        targets : sequence of str or Rig, optional, keyword-only
+            The rows, in this order (e.g. the rig's names, so that targets no key drives
+            stay at 0). Default: targets in order of first mention.
+        sources : sequence of str, optional, keyword-only
+            The columns, in this order (keys driving nothing stay as zero columns).
+            Default: the dict's keys.
+
+        Returns
+        -------
+        Mapping
+
+        Raises
+        ------
+        RigError
+            If ``targets`` is given and the dict mentions targets not in it (listed).
+
+        Examples
+        --------
+        >>> m = Mapping.from_dict({"upper_00": {"browUp_L": 1.0, "browUp_R": 0.5}})
+        >>> m.targets, m.matrix[:, 0].tolist()
+        (('browUp_L', 'browUp_R'), [1.0, 0.5])
+        """
+        sources = tuple(str(k) for k in gains) if sources is None else _names(sources)
+        unknown_keys = [k for k in gains if str(k) not in sources]
+        if unknown_keys:
+            raise InputError(f"gains name keys {unknown_keys} not among the sources {list(sources)}")
+        mentioned = list(dict.fromkeys(str(t) for row in gains.values() for t in row))
+        rows = mentioned if targets is None else _names(targets)
+        unknown = [t for t in mentioned if t not in rows]
+        if unknown:
+            raise RigError(f"mapping names targets the rig does not have: {unknown}; rig targets: {list(rows)}")
+        matrix = np.zeros((len(rows), len(sources)))
+        for key, row in gains.items():
+            k = sources.index(str(key))
+            for target, gain in row.items():
+                matrix[rows.index(str(target)), k] = _gain(gain, str(key), target)
+        return cls(matrix, sources, rows)
+
+    @classmethod
+    def from_file(cls, path, *, targets=None) -> Mapping:
+        """Read a mapping JSON file (see the module docstring for its forms).
+
+        Parameters
+        ----------
+        path : str or Path
+        targets : sequence of str or Rig, optional, keyword-only
+            The rig's target names: rows follow them, targets no key drives stay at 0,
+            and targets the file names but the rig lacks are an error.
+
+        Returns
+        -------
+        Mapping
+
+        Raises
+        ------
+        InputError
+            Unreadable file, not JSON, wrong structure or a bad gain (the message names
+            the file and the entry).
+        RigError
+            The file names targets the rig does not have (listed).
+
+        Examples
+        --------
+        >>> import tempfile, os
+        >>> path = os.path.join(tempfile.mkdtemp(), "map.json")
+        >>> _ = Mapping.from_dict({"lower_03": {"jawOpen": 0.8, "mouthFunnel": 0.3}}).save(path)
+        >>> Mapping.from_file(path, targets=["mouthFunnel", "jawOpen", "eyeBlinkLeft"]).matrix.ravel().tolist()
+        [0.3, 0.8, 0.0]
+        """
+        path = Path(path)
+        data = _read_json(path)
+        try:
+            if isinstance(data, dict) and "matrix" in data:
+                mapping = cls._from_matrix(data)
+                return mapping if targets is None else cls.from_dict(mapping.to_dict(), targets=targets,
+                                                                    sources=mapping.sources)
+            gains = data.get("gains") if isinstance(data, dict) and data.get("format") == MAP_FORMAT else data
+            _check_gains(gains)
+            return cls.from_dict(gains, targets=targets)
+        except (InputError, RigError) as error:
+            raise type(error)(f"{path}: {error}") from None
+
+    @classmethod
+    def _from_matrix(cls, data: dict) -> Mapping:
+        keys, targets = data.get("keys"), data.get("targets")
+        if not isinstance(keys, list) or not isinstance(targets, list):
+            raise InputError('a matrix mapping needs "keys" and "targets" lists beside "matrix"')
+        try:
+            matrix = np.array(data["matrix"], dtype=float)
+        except (TypeError, ValueError):
+            raise InputError('"matrix" must be a list of rows of numbers (one row per target)') from None
+        return cls(matrix, keys, targets)
+
+    def save(self, path) -> Path:
+        """Write the mapping as JSON (``{"format": "keyshape-map", "version": 1, "gains": ...}``), atomically."""
+        from ..io.atomic import atomic_path
+
+        text = json.dumps({"format": MAP_FORMAT, "version": 1, "gains": self.to_dict()}, indent=1)
+        with atomic_path(path) as tmp:
+            tmp.write_text(text + "\n", encoding="utf-8")
+        return Path(path)
+
+    def to_dict(self) -> dict:
+        """``{key: {target: gain}}`` for the non-zero gains (the inverse of :meth:`from_dict`)."""
+        return {
+            key: {t: float(g) for t, g in zip(self.targets, self.matrix[:, k]) if g != 0}
+            for k, key in enumerate(self.sources)
+        }
+
+    def __repr__(self) -> str:
+        return f"Mapping(n_targets={self.n_targets}, n_keys={self.n_keys})"
+
+
+MAP_FORMAT = "keyshape-map"
+
+
+def _read_json(path: Path):
+    if not path.is_file():
+        raise InputError(f"{path}: mapping file not found")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise InputError(f"{path}: not a readable JSON mapping ({error.__class__.__name__}: {error})") from None
+
+
+def _check_gains(gains) -> None:
+    if not isinstance(gains, dict) or not gains:
+        raise InputError('expected a JSON object {key: {target: gain, ...}, ...} with at least one key; '
+                         f"got {type(gains).__name__}")
+    for key, row in gains.items():
+        if not isinstance(row, dict):
+            raise InputError(f"key {key!r} must map to an object {{target: gain, ...}}; got {row!r}")
+
+
+def _by_name_message(missing: list[str], extra: list[str]) -> str:
+    parts = []
+    if missing:
+        parts.append(f"keys with no same-named rig target: {missing}")
+    if extra:
+        parts.append(f"rig targets with no same-named key: {extra} (pass allow_extra=True to leave them at 0)")
+    return "; ".join(parts) + "; give a mapping to connect differently named keys and targets"
+
+
+def _gain(value, key: str, target: str) -> float:
+    try:
+        gain = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"gain for key {key!r} -> target {target!r} must be a number; got {value!r}") from None
+    if not np.isfinite(gain) or gain < 0:
+        raise InputError(f"gain for key {key!r} -> target {target!r} must be finite and >= 0; got {value!r}")
+    return gain
+
+
+def retarget(weights: Weights, mapping: Mapping) -> Weights:
+    """Target weights from key weights: ``w_target(t) = M · w_key(t)``.
+
+    Parameters
+    ----------
+    weights : Weights
+        ``values (n_frames, n_channels)`` named by keys; every ``mapping.sources`` name
+        must be among them (order and extra channels do not matter). NaN (no face) is
+        treated as 0, so such frames show the neutral.
+    mapping : Mapping
+
+    Returns
+    -------
+    Weights
+        ``values (n_frames, n_targets)`` named ``mapping.targets``, same fps.
+
+    Raises
+    ------
+    RigError
+        Listing the mapping's keys that ``weights`` does not have.
+
+    Examples
+    --------
+    >>> w = Weights(np.array([[0.5, np.nan]]), ("smile", "blink"), fps=30)
+    >>> retarget(w, Mapping.from_dict({"smile": {"grin": 2.0}, "blink": {"grin": 1.0}})).values
+    array([[1.]])
+    """
+    missing = [k for k in mapping.sources if k not in weights.names]
+    if missing:
+        raise RigError(f"the mapping needs keys the weights do not have: {missing}; weights have {list(weights.names)}")
+    columns = [weights.names.index(k) for k in mapping.sources]
+    keyed = np.nan_to_num(weights.values[:, columns], nan=0.0)
+    # f: frame, k: key, t: target
+    values = np.einsum("fk,tk->ft", keyed, mapping.matrix)
+    return Weights(values, mapping.targets, weights.fps)

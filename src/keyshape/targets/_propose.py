@@ -1,0 +1,356 @@
+"""Automatic target shapes: propose the character's version of every key shape.
+
+Two routes, chosen by what the character already has:
+
+* **transfer** (:func:`propose_targets`): the character is a neutral mesh (or its targets are to
+  be ignored). Each key's landmark motion is carried onto the mesh and spread over it
+  (:mod:`keyshape.targets._transfer`); the result is a :class:`~keyshape.containers.Rig` with one target
+  per key, named after it, driven by :meth:`Mapping.by_name <keyshape.targets._mapping.Mapping.by_name>`.
+* **mapping** (:func:`propose_mapping`): the character has blendshapes of its own (ARKit names
+  or any set). Each key becomes the non-negative combination of the rig's targets whose motion
+  at the corresponding points best reproduces the key's landmark motion::
+
+      m_k = argmin_{m ≥ 0} ‖A m − b_k‖²_κ + Σ_t λ_t m_t²
+
+  with ``A[:, t]`` target ``t``'s displacement at the corresponded landmarks and ``b_k`` the
+  key's displacement there (in the character's space and proportions, zero on the landmarks of
+  the other regions), rows weighted by each landmark's confidence ``κ`` (low on silhouettes), and
+  ``λ_t`` growing with the motion target ``t`` makes where no landmark sees it (so an
+  ``eyeLookDown`` that turns the eyeball is not proposed to explain a small lid motion). It is
+  solved by NNLS (Lawson & Hanson 1974) on the ridge-augmented system.
+  The gains ``m_k`` form the columns of a :class:`~keyshape.targets._mapping.Mapping` that the user can
+  read and edit (``MAP.json``).
+
+:func:`auto_targets` picks the route and the correspondence (a file, the built-in one of the
+default character, or found by rendering the character and tracking the render).
+
+References
+----------
+.. [1] C. L. Lawson and R. J. Hanson, *Solving Least Squares Problems*, Prentice-Hall 1974.
+.. [2] J. Noh and U. Neumann, "Expression cloning", SIGGRAPH 2001.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from ..containers import KeyShapes, Rig
+from ..exceptions import InputError, RigError
+from ._character import stylised_head
+from ._correspond import Correspondence, read_correspondence
+from ._correspond_auto import find_correspondence
+from ._mapping import Mapping
+from ._transfer import landmark_motion, transfer_expressions
+
+__all__ = ["AutoTargets", "auto_targets", "default_character", "propose_mapping", "propose_targets", "proposer",
+           "resolve_correspondence"]
+
+Route = Literal["auto", "transfer", "mapping"]
+
+
+def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int) -> Correspondence:
+    """A :class:`Correspondence` for ``rig`` from an object, a JSON path, or None (found automatically).
+
+    None renders the rig's neutral from the front and tracks it with MediaPipe
+    (:func:`keyshape.targets._correspond.find_correspondence`), which serves MediaPipe key shapes only.
+    """
+    if isinstance(correspondence, Correspondence):
+        return correspondence.check(rig.n_vertices, n_landmarks)
+    if correspondence is not None:
+        return read_correspondence(correspondence, rig.vertices, rig.faces,
+                                   n_landmarks=n_landmarks).check(rig.n_vertices, n_landmarks)
+    if n_landmarks not in (468, 478):
+        raise InputError(f"the key shapes have {n_landmarks} landmarks: only MediaPipe landmarks (478) are "
+                         "found automatically; give a correspondence file (landmark -> vertex)")
+    found = find_correspondence(rig.vertices, rig.faces)
+    keep = found.landmarks < n_landmarks
+    return Correspondence(found.landmarks[keep], found.vertices[keep], found.weights[keep], n_landmarks)
+
+
+def _as_rig(character) -> Rig:
+    if isinstance(character, Rig):
+        return character
+    if isinstance(character, tuple) and len(character) == 2:
+        vertices, faces = character
+        vertices = np.asarray(vertices, dtype=float)
+        return Rig(vertices, faces, np.zeros((0, *vertices.shape)), ())
+    return _load(Path(character), 1.0)
+
+
+def propose_targets(keys: KeyShapes, character, *, correspondence=None, falloff: float = 1.0,
+                    rescale: bool = True, rigid: Sequence[np.ndarray] = ()) -> Rig:
+    """The character with one proposed target per key shape, by expression transfer.
+
+    Parameters
+    ----------
+    keys : KeyShapes
+    character : Rig, (vertices, faces) or a rig path
+        Its neutral is used; its own targets, if any, are dropped.
+    correspondence : Correspondence, path of a JSON file, or None, keyword-only
+        None: found automatically (MediaPipe on a front render; MediaPipe key shapes only).
+    falloff, rescale, rigid
+        See :func:`keyshape.targets._transfer.transfer_expressions`.
+
+    Returns
+    -------
+    Rig
+        ``vertices`` and ``faces`` of the character, ``deltas (n_keys, n_vertices, 3)``,
+        ``names = keys.names``.
+    """
+    rig = _as_rig(character)
+    corr = resolve_correspondence(correspondence, rig, keys.n_landmarks)
+    deltas = transfer_expressions(keys, rig.vertices, rig.faces, corr, falloff=falloff, rescale=rescale,
+                                  rigid=rigid)
+    return Rig(rig.vertices, rig.faces, deltas, keys.names)
+
+
+def default_character(keys: KeyShapes) -> Rig:
+    """The stylised head with one proposed target per key shape (MediaPipe key shapes).
+
+    Returns
+    -------
+    Rig
+        ``names = keys.names``; drive it with :meth:`Mapping.by_name <keyshape.targets.Mapping.by_name>`.
+    """
+    head = stylised_head()
+    return propose_targets(keys, head.rig, correspondence=head.correspondence(keys.n_landmarks))
+
+
+GAZE_TARGETS = ("eyeLook*",)
+
+
+def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float = 3e-3, min_gain: float = 0.05,
+                    max_gain: float | None = 2.0, normalize: bool = False, rescale: bool = True,
+                    exclude: Sequence[str] = GAZE_TARGETS) -> Mapping:
+    """A key → target mapping onto a rig's own blendshapes, by non-negative least squares.
+
+    Parameters
+    ----------
+    keys : KeyShapes
+    rig : Rig or rig path
+        With at least one target.
+    correspondence : Correspondence, path of a JSON file, or None, keyword-only
+        None: found automatically (see :func:`propose_targets`).
+    ridge : float, keyword-only
+        Strength of the per-target ridge penalty ``λ_t m_t²`` (see the module docstring): a
+        target is shrunk by about ``1 / (1 + ridge)`` when the landmarks see its motion well, and
+        much more when most of its motion is where no landmark is.
+    min_gain : float, keyword-only
+        Gains below ``min_gain`` times the key's largest gain are dropped, and the rest refitted,
+        so the mapping stays short enough to read.
+    max_gain : float or None, keyword-only
+        Upper bound of every gain (bounded least squares, BVLS): targets are made for weights
+        up to 1, and a much larger gain means a target is being bent to a use it was not made for.
+    normalize : bool, keyword-only
+        Scale each target's gains so the key that drives it most drives it fully (gain 1): keys
+        are the performance's extreme frames, so the character reaches its full expression. For
+        stylised rigs whose targets exaggerate (the geometric fit gives small gains there); off,
+        the gains reproduce the actor's amplitude.
+    rescale : bool, keyword-only
+        See :func:`keyshape.targets._transfer.landmark_motion`.
+    exclude : sequence of str, keyword-only
+        Target-name patterns (``fnmatch``, case-insensitive) never proposed. Default: ARKit's gaze
+        targets, since eye gaze comes from the irises (:mod:`keyshape.capture.gaze`), not from key shapes.
+
+    Returns
+    -------
+    Mapping
+        ``matrix (n_targets, n_keys) ≥ 0``, ``sources = keys.names``, ``targets = rig.names``.
+        A key no target can reproduce (e.g. a mouth key on a rig whose targets move only the
+        brows) gets an all-zero column.
+
+    Raises
+    ------
+    RigError
+        A rig without targets (use :func:`propose_targets`).
+
+    References
+    ----------
+    .. [1] Lawson & Hanson (1974), NNLS; P. B. Stark and R. L. Parker, "Bounded-variable least-squares:
+       an algorithm and applications", Computational Statistics 10, 1995 (BVLS).
+    """
+    rig = _as_rig(rig)
+    if rig.n_targets == 0:
+        raise RigError("the rig has no blendshapes to combine: propose target shapes instead (transfer route)")
+    corr = resolve_correspondence(correspondence, rig, keys.n_landmarks)
+    basis, wanted, n_points = _mapping_system(keys, rig, corr, rescale)
+    penalty = _penalties(n_points, rig.deltas, ridge)
+    allowed = ~_excluded(rig.names, exclude)
+    gains = np.zeros((rig.n_targets, keys.n_keys))
+    for k, b in enumerate(wanted):
+        gains[allowed, k] = _fit_gains(basis[:, allowed], b, penalty[allowed], min_gain, max_gain)
+    gains[gains < 1e-9] = 0.0  # rounding noise of the solvers
+    if normalize:
+        strongest = gains.max(axis=1, keepdims=True)
+        gains /= np.where(strongest > 0, strongest, 1.0)
+    return Mapping(gains, keys.names, rig.names)
+
+
+def _mapping_system(keys: KeyShapes, rig: Rig, corr: Correspondence, rescale: bool):
+    """``A (n_rows, n_targets)``, ``b (n_keys, n_rows)`` and the number of points used.
+
+    Rows are the constrained points' coordinates (x, y for 2D key shapes), each weighted by the
+    square root of the point's confidence (weighted least squares).
+    """
+    motion = landmark_motion(keys, corr, rig.vertices, rig.faces, rescale=rescale)
+    used = np.flatnonzero(motion.constrained)
+    dims = slice(0, motion.n_dims)  # 2D keys say nothing about depth
+    trust = np.sqrt(motion.confidence[used])[None, :, None]
+    # t: target, c: point, d: dimension -> A (c·d, t)
+    basis = (corr.points(rig.deltas)[:, used, dims] * trust).reshape(rig.n_targets, -1).T
+    wanted = (motion.deltas[:, used, dims] * trust).reshape(keys.n_keys, -1)
+    return basis, wanted, len(used)
+
+
+def _excluded(names: Sequence[str], patterns: Sequence[str]) -> np.ndarray:
+    from fnmatch import fnmatch
+
+    return np.array([any(fnmatch(n.lower(), p.lower()) for p in patterns) for n in names], dtype=bool)
+
+
+def _penalties(n_points: int, deltas: np.ndarray, ridge: float) -> np.ndarray:
+    """Ridge weights ``λ_t (n_targets,)`` that make motion the landmarks cannot see expensive.
+
+    ``λ_t = ridge · n_points · mean_{v moving} |D_t(v)|²``, the mean over the vertices target ``t``
+    moves noticeably (more than a tenth of its largest motion). A target the landmarks see well
+    has ``‖A_t‖² ≈ n_points · mean |D_t|²`` and is shrunk by about ``1 / (1 + ridge)``; one whose
+    motion is mostly elsewhere (an eyeball turning for ``eyeLookDown``, which barely moves the
+    lids) is shrunk much more, so unseen motion is not proposed on thin evidence.
+    """
+    deltas = np.asarray(deltas, dtype=float)
+    length2 = (deltas**2).sum(axis=2)  # (n_targets, n_vertices)
+    moving = length2 > 0.01 * length2.max(axis=1, keepdims=True)
+    mean_moving = (length2 * moving).sum(axis=1) / np.maximum(moving.sum(axis=1), 1)
+    return ridge * n_points * mean_moving
+
+
+def _fit_gains(basis: np.ndarray, wanted: np.ndarray, penalty: np.ndarray, min_gain: float,
+               max_gain: float | None) -> np.ndarray:
+    """Bounded NNLS with a ridge term, then drop small gains and refit on the rest: ``(n_targets,)``."""
+    gains = _ridge_nnls(basis, wanted, penalty, max_gain)
+    if gains.max(initial=0) > 0 and min_gain > 0:
+        keep = gains >= min_gain * gains.max()
+        gains = np.zeros_like(gains)
+        gains[keep] = _ridge_nnls(basis[:, keep], wanted, penalty[keep], max_gain)
+    return gains
+
+
+def _ridge_nnls(basis: np.ndarray, wanted: np.ndarray, penalty: np.ndarray, max_gain: float | None) -> np.ndarray:
+    """``argmin_{0 ≤ m ≤ max_gain} ‖A m − b‖² + Σ_t λ_t m_t²``: NNLS (or BVLS) on ``[A; diag(√λ)] m ≈ [b; 0]``."""
+    from scipy.optimize import lsq_linear, nnls
+
+    n = basis.shape[1]
+    if n == 0 or not np.abs(wanted).max(initial=0) > 0:
+        return np.zeros(n)
+    stacked = np.vstack([basis, np.diag(np.sqrt(penalty))])
+    target = np.concatenate([wanted, np.zeros(n)])
+    gains = nnls(stacked, target, maxiter=50 * n)[0]
+    if max_gain is None or gains.max() <= max_gain:
+        return gains
+    return lsq_linear(stacked, target, bounds=(0.0, float(max_gain)), method="bvls").x
+
+
+def proposer(*, correspondence=None, falloff: float = 1.0, rigid: Sequence[np.ndarray] = ()):
+    """A ``propose(keys, neutral) -> (n_keys, n_vertices, 3)`` callable for the sculpt kit.
+
+    The kit (:func:`keyshape.app._sculpt.sculpt_targets`) then starts every target as the proposal
+    instead of the neutral.
+    """
+    def propose(keys: KeyShapes, neutral: Rig) -> np.ndarray:
+        return propose_targets(keys, neutral, correspondence=correspondence, falloff=falloff,
+                               rigid=rigid).deltas
+
+    return propose
+
+
+# --------------------------------------------------------------------------- the one call for run / demo
+
+
+@dataclass(frozen=True, eq=False)
+class AutoTargets:
+    """A character ready to drive with key weights.
+
+    Attributes
+    ----------
+    rig : Rig
+        The character; for the transfer route its targets are the proposals, named after the keys.
+    mapping : Mapping
+        Keys → ``rig.names``: by name for the transfer route, the proposed gains for the mapping route.
+    route : "transfer" or "mapping"
+    correspondence : Correspondence
+    """
+
+    rig: Rig
+    mapping: Mapping
+    route: str
+    correspondence: Correspondence
+
+
+def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route = "auto",
+                 unit: float = 1.0, falloff: float = 1.0, normalize: bool = False) -> AutoTargets:
+    """Propose the character's targets for ``keys`` in one call.
+
+    Parameters
+    ----------
+    keys : KeyShapes
+    rig : Rig, rig path, or None
+        None: the built-in stylised head (:func:`keyshape.targets._character.stylised_head`), which
+        needs MediaPipe key shapes.
+    correspondence : Correspondence, JSON path, or None, keyword-only
+        None: the built-in one for the default character, else found automatically.
+    route : "auto", "transfer" or "mapping", keyword-only
+        "auto": mapping when the rig has targets, transfer otherwise.
+    unit : float, keyword-only
+        Metres per OBJ unit of a rig path (see :func:`keyshape.io.rig.load_rig`).
+    falloff : float, keyword-only
+        Transfer route: see :func:`keyshape.targets._transfer.spread`.
+    normalize : bool, keyword-only
+        Mapping route: see :func:`propose_mapping`.
+
+    Returns
+    -------
+    AutoTargets
+
+    Examples
+    --------
+    The lead's ``run --auto-targets`` / ``demo`` wiring::
+
+        auto = auto_targets(keys, args.rig)          # args.rig: a path or None
+        anim = retarget(solved.weights, auto.mapping)
+        write_glb(out / "animation.glb", auto.rig, anim, poses=solved.poses)
+    """
+    if route not in ("auto", "transfer", "mapping"):
+        raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
+    character, corr, rigid = _character(keys, rig, correspondence, unit)
+    if route == "mapping" or (route == "auto" and character.n_targets > 0):
+        mapping = propose_mapping(keys, character, correspondence=corr, normalize=normalize)
+        return AutoTargets(character, mapping, "mapping", corr)
+    proposed = propose_targets(keys, character, correspondence=corr, rigid=rigid, falloff=falloff)
+    return AutoTargets(proposed, Mapping.by_name(keys.names, proposed.names), "transfer", corr)
+
+
+def _character(keys: KeyShapes, rig, correspondence, unit: float) -> tuple[Rig, Correspondence, tuple]:
+    """The character, its correspondence and its rigid parts."""
+    if rig is None:
+        head = stylised_head()
+        corr = head.correspondence(keys.n_landmarks) if correspondence is None else correspondence
+        return head.rig, resolve_correspondence(corr, head.rig, keys.n_landmarks), ()
+    if isinstance(rig, (str, Path)):
+        rig = _load(Path(rig), unit)
+    return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks), ()
+
+
+def _load(path: Path, unit: float) -> Rig:
+    """A rig from a path; a glTF file without morph targets is read as a plain neutral."""
+    if path.suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import read_meshes
+
+        return read_meshes(path)[0]
+    from ..io.rig import load_rig
+
+    return load_rig(path, unit=unit)
