@@ -9,10 +9,11 @@ from keyshape.containers import KeyShapes, Poses, Rig, Weights
 from keyshape.exceptions import InputError, RigError
 from keyshape.io import gltf as gltf_io
 from keyshape.io.gltf import read_glb_animation, write_glb
-from keyshape.io.rig import load_rig, rig_from_keyshapes
+from keyshape.io.rig import load_rig
 from keyshape.schemes import face_triangles
 
 from gltf_validator import validate
+from helpers import rig_from_keyshapes
 
 C = np.diag([1.0, -1.0, -1.0])  # image axes <-> glTF axes
 

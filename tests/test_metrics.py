@@ -7,7 +7,9 @@ from scipy.optimize import lsq_linear, nnls
 from keyshape.containers import KeyShapes, Track
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
-from keyshape.metrics import face_scale, nonnegative_fit, reconstruction_error
+from keyshape.metrics import face_scale, reconstruction_error
+
+from helpers import nonnegative_fit
 
 
 def _truth(perf):

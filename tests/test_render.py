@@ -14,7 +14,6 @@ from keyshape.containers import Rig, Weights
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError
 from keyshape.keyshapes import find_keyshapes
-from keyshape.metrics import nonnegative_fit
 from keyshape.render import RenderFallbackWarning, frame_points, make_renderer
 from keyshape.render import _backend as render
 from keyshape.render.camera import BACKGROUND
@@ -22,6 +21,7 @@ from keyshape.render.encode import VideoWriter, rate_of
 from keyshape.render.raster import NumpyRenderer, rasterize
 
 from conftest import write_video
+from helpers import nonnegative_fit
 
 BACKGROUND_RGB = np.round(BACKGROUND * 255)
 
@@ -45,7 +45,7 @@ def synthetic_take(*, n_frames: int = 48, n_missing: int = 3, rotation_deg: floa
         targets = (aligned.points[ok][:, lm] - keys.neutral[lm]).reshape(ok.sum(), -1)
         values[np.ix_(ok, k)] = nonnegative_fit(targets, keys.deltas[k][:, lm].reshape(len(k), -1))
     weights = Weights(values, keys.names, perf.track.fps)
-    from keyshape.io.rig import rig_from_keyshapes
+    from helpers import rig_from_keyshapes
 
     rig = rig_from_keyshapes(keys, Delaunay(keys.neutral[:, :2]).simplices.astype(np.int64))
     return perf, keys, weights, poses, rig
@@ -253,7 +253,8 @@ def test_preview_draws_landmarks_in_region_colours(take_dir, preview):
 
 
 def test_preview_without_video_and_with_the_numpy_backend(tmp_path):
-    from keyshape.render.preview import head_rotations, render_preview
+    from keyshape.render import render_preview
+    from keyshape.schemes import head_rotations
 
     perf, keys, weights, poses, rig = synthetic_take(n_frames=12, n_missing=0, rotation_deg=20.0)
     path = render_preview(perf.track, weights, rig, tmp_path / "p.mp4", keys=keys, rotations=head_rotations(poses),

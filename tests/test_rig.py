@@ -7,7 +7,9 @@ import pytest
 from keyshape.containers import KeyShapes, Rig, Weights
 from keyshape.exceptions import InputError, RigError
 from keyshape.io.gltf import write_glb
-from keyshape.io.rig import load_rig, read_obj, rig_from_keyshapes, save_obj_folder
+from keyshape.io.rig import load_rig, read_obj, save_obj_folder
+
+from helpers import rig_from_keyshapes
 
 ROBOT = Path("/work/shared/data/robot-expressive/RobotExpressive.glb")
 

@@ -1,11 +1,11 @@
-"""Geometry on a triangle mesh: closest surface points, welded vertices, connected parts.
+"""Geometry on a triangle mesh: normals, closest surface points, welded vertices, connected parts.
 
-:func:`snap_to_surface` gives the closest point of a mesh to each query point as a triangle
-and barycentric weights (the form a :class:`~keyshape.targets._correspond.Correspondence` stores);
-:func:`weld_vertices` merges vertices split along texture seams; :func:`mesh_components`
-labels the connected parts of a mesh (the face, the eyeballs, the teeth), largest first.
-Used by :mod:`keyshape.targets._correspond` (which re-exports them), the automatic correspondence
-and expression transfer.
+:func:`face_normals` and :class:`NormalEstimator` give face and vertex normals (shading, and the
+facing of the character's surface in expression transfer); :func:`snap_to_surface` gives the
+closest point of a mesh to each query point as a triangle and barycentric weights (the form a
+:class:`~keyshape.targets.Correspondence` stores); :func:`weld_vertices` merges vertices split
+along texture seams; :func:`mesh_components` labels the connected parts of a mesh (the face, the
+eyeballs, the teeth), largest first.
 """
 
 from __future__ import annotations
@@ -15,7 +15,53 @@ from scipy import sparse
 
 from .exceptions import InputError
 
-__all__ = ["mesh_components", "snap_to_surface", "weld_vertices"]
+__all__ = ["face_normals", "NormalEstimator", "mesh_components", "snap_to_surface", "weld_vertices"]
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unnormalised face normals ``(n_faces, 3)``: ``(b − a) × (c − a)``, length twice the area.
+
+    Computed per coordinate (about twice as fast as ``np.cross`` on gathered corners).
+    """
+    x, y, z = np.asarray(vertices, dtype=float).T
+    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+    ux, uy, uz = x[b] - x[a], y[b] - y[a], z[b] - z[a]
+    wx, wy, wz = x[c] - x[a], y[c] - y[a], z[c] - z[a]
+    return np.stack([uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx], axis=1)
+
+
+class NormalEstimator:
+    """Per-vertex normals of a fixed topology: area-weighted sum of the incident face normals.
+
+    The vertex–face incidence is built once as a sparse matrix, so each frame costs one
+    cross product and one sparse product.
+
+    Parameters
+    ----------
+    faces : (n_faces, 3) int
+    n_vertices : int
+    """
+
+    def __init__(self, faces: np.ndarray, n_vertices: int):
+        self.faces = np.asarray(faces, dtype=np.int64)
+        rows = self.faces.ravel()
+        cols = np.repeat(np.arange(len(self.faces)), 3)
+        self._incidence = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)),
+                                            shape=(n_vertices, len(self.faces)))
+
+    def __call__(self, vertices: np.ndarray) -> np.ndarray:
+        """Unit vertex normals ``(n_vertices, 3)``; (0, 0, 1) where undefined."""
+        summed = self._incidence @ face_normals(vertices, self.faces)
+        return _unit(summed)
+
+
+def _unit(vectors: np.ndarray) -> np.ndarray:
+    length = np.sqrt(np.einsum("ij,ij->i", vectors, vectors))
+    out = vectors / np.maximum(length, 1e-30)[:, None]
+    flat = length <= 1e-20
+    if flat.any():
+        out[flat] = (0.0, 0.0, 1.0)
+    return out
 
 
 def snap_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *,

@@ -10,14 +10,13 @@ length that makes them relative (% of the inter-ocular distance).
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import nnls
 
 from .containers import KeyShapes, Track, Weights
-from .decompose import solve_nnls
+from .decompose import check_upper, solve_nnls
 from .exceptions import InputError
 from .schemes import eye_corners
 
-__all__ = ["face_scale", "nonnegative_fit", "reconstruction_error"]
+__all__ = ["face_scale", "reconstruction_error"]
 
 
 def reconstruction_error(
@@ -66,7 +65,7 @@ def reconstruction_error(
             f"aligned points {aligned.points.shape[1:]} do not match the key shapes {keys.neutral.shape}"
         )
     fitted = None if weights is None else _check_weights(weights, aligned.n_frames, keys.n_keys)
-    upper = _check_upper(upper)
+    upper = check_upper(upper)
     return {region: _region_error(aligned, keys, region, fitted, upper) for region in keys.regions}
 
 
@@ -102,15 +101,6 @@ def face_scale(neutral: np.ndarray) -> tuple[float, str]:
     return float(2 * np.sqrt(((xy - xy.mean(axis=0)) ** 2).sum(axis=1).mean())), "% face size"
 
 
-def _check_upper(upper) -> float | None:
-    if upper is None:
-        return None
-    value = float(upper)
-    if not value > 0:
-        raise InputError(f"upper must be None or a number > 0; got {upper!r}")
-    return value
-
-
 def _check_weights(weights, n_frames: int, n_keys: int) -> np.ndarray:
     values = np.asarray(weights.values if isinstance(weights, Weights) else weights, dtype=float)
     if values.shape != (n_frames, n_keys):
@@ -129,37 +119,3 @@ def _region_error(aligned: Track, keys: KeyShapes, region: str, weights, upper) 
     w = solve_nnls(bases.T, targets, upper=upper) if weights is None else weights[ok][:, k]
     residual = targets - w @ bases
     return float(np.sqrt((residual**2).sum() / (targets.shape[0] * len(lm))))
-
-
-def nonnegative_fit(targets: np.ndarray, bases: np.ndarray) -> np.ndarray:
-    """Exact non-negative least squares ``min_{w >= 0} |t_f - wᵀ B|²`` for every row ``t_f``.
-
-    The problem is first reduced to ``n_keys`` equations through the Gram matrix
-    ``G = B Bᵀ = Q Λ Qᵀ``: ``|t - wᵀB|² = |Λ^½ Qᵀ w - Λ^-½ Qᵀ B t|² + const``, then each
-    frame is solved by Lawson-Hanson (``scipy.optimize.nnls``) on that small system.
-
-    Parameters
-    ----------
-    targets : (n_frames, n_features) float
-    bases : (n_keys, n_features) float
-
-    Returns
-    -------
-    (n_frames, n_keys) float, >= 0
-
-    Examples
-    --------
-    >>> nonnegative_fit(np.array([[1.0, -1.0]]), np.eye(2))
-    array([[1., 0.]])
-    """
-    targets, bases = np.atleast_2d(targets), np.atleast_2d(bases)
-    out = np.zeros((targets.shape[0], bases.shape[0]))
-    if bases.shape[0] == 0 or targets.shape[0] == 0:
-        return out
-    lam, q = np.linalg.eigh(bases @ bases.T)
-    keep = lam > lam.max() * 1e-12
-    design = np.sqrt(lam[keep])[:, None] * q[:, keep].T  # Λ^½ Qᵀ, (n_kept, n_keys)
-    rhs = (targets @ bases.T) @ q[:, keep] / np.sqrt(lam[keep])  # Λ^-½ Qᵀ B t, (n_frames, n_kept)
-    for f, y in enumerate(rhs):
-        out[f] = nnls(design, y, maxiter=50 * bases.shape[0])[0]
-    return out

@@ -1,4 +1,5 @@
-"""Landmark schemes: which landmark is which, how the face splits into regions.
+"""Landmark schemes and axis conventions: which landmark is which, how the face splits into
+regions, and how image axes become glTF axes.
 
 Two schemes are known by landmark count:
 
@@ -9,6 +10,12 @@ Two schemes are known by landmark count:
   the standard index ranges (jaw 0–16, brows 17–26, nose 27–35, eyes 36–47, mouth 48–67).
 
 Any other landmark count works with ``whole`` or a user REGIONS.json, and aligns on all points.
+
+Axes: tracks live in **image axes** (x right, y down, z away from the camera, as MediaPipe);
+characters and every exported file in **glTF axes** (x right, y up, z toward the viewer). The
+change of basis is ``C = diag(1, −1, −1)``, its own inverse: a point maps to ``C p``
+(:func:`points_to_gltf`), a rotation to ``C R C`` (:func:`rotations_to_gltf`,
+:func:`head_rotations`). This module is the one place that knows it.
 """
 
 from __future__ import annotations
@@ -22,7 +29,8 @@ import numpy as np
 
 from .exceptions import InputError
 
-__all__ = ["REGION_SCHEMES", "resolve_regions", "stable_points", "face_triangles", "mediapipe_scheme"]
+__all__ = ["REGION_SCHEMES", "resolve_regions", "stable_points", "face_triangles", "mediapipe_scheme", "eye_corners",
+           "IMAGE_TO_GLTF", "as_xyz", "points_to_gltf", "rotations_to_gltf", "head_rotations", "hold_valid"]
 
 REGION_SCHEMES = ("upper-lower", "whole", "eyes")
 
@@ -140,3 +148,58 @@ def eye_corners(n_landmarks: int) -> tuple[int, int] | None:
 def face_triangles() -> np.ndarray:
     """(n_faces, 3) int triangles of MediaPipe's face mesh over the first 468 landmarks."""
     return np.array(mediapipe_scheme()["triangles"], dtype=np.int64)
+
+
+# --------------------------------------------------------------------------- axes
+
+IMAGE_TO_GLTF = np.array([1.0, -1.0, -1.0])  # the diagonal of C: image (x right, y down, z away) <-> glTF
+
+
+def as_xyz(points) -> np.ndarray:
+    """``(..., 3)`` float: 2D points (or deltas) get z = 0."""
+    points = np.asarray(points, dtype=float)
+    if points.shape[-1] == 3:
+        return points
+    return np.concatenate([points, np.zeros(points.shape[:-1] + (1,))], axis=-1)
+
+
+def points_to_gltf(points: np.ndarray) -> np.ndarray:
+    """Points or displacements ``(..., d)``, d = 2 or 3, from image to glTF axes: ``C p``."""
+    return points * IMAGE_TO_GLTF[: np.shape(points)[-1]]
+
+
+def rotations_to_gltf(rotations) -> np.ndarray:
+    """Rotations ``(n_frames, d, d)``, d = 2 or 3, in image axes -> ``(n_frames, 3, 3)`` in glTF axes.
+
+    ``R_gltf = C R C``; a 2D rotation turns about the image z axis (the view axis). Frames that
+    are not finite stay NaN.
+    """
+    rotations = np.asarray(rotations, dtype=float)
+    if rotations.shape[1] == 2:
+        full = np.tile(np.eye(3), (len(rotations), 1, 1))
+        full[:, :2, :2] = rotations
+        full[~np.isfinite(rotations).all(axis=(1, 2))] = np.nan
+        rotations = full
+    axes = np.diag(IMAGE_TO_GLTF)
+    return axes @ rotations @ axes
+
+
+def head_rotations(poses, *, hold: bool = False) -> np.ndarray:
+    """Head rotations ``(n_frames, 3, 3)`` in glTF axes from image-space ``poses.rotations``.
+
+    Frames without a pose are NaN, or with ``hold=True`` hold the previous valid rotation
+    (:func:`hold_valid`), as the written animations do.
+    """
+    rotations = rotations_to_gltf(poses.rotations)
+    return hold_valid(rotations) if hold else rotations
+
+
+def hold_valid(rotations: np.ndarray) -> np.ndarray:
+    """Rotations ``(n_frames, 3, 3)`` with NaN frames holding the previous valid one (leading ones
+    the first valid one; none valid at all: identity)."""
+    valid = np.isfinite(rotations).all(axis=(1, 2))
+    if not valid.any():
+        return np.tile(np.eye(3), (len(rotations), 1, 1))
+    source = np.maximum.accumulate(np.where(valid, np.arange(len(valid)), -1))
+    source[source < 0] = np.flatnonzero(valid)[0]
+    return rotations[source]

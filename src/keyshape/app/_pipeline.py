@@ -19,21 +19,17 @@ from ..containers import KeyShapes, Poses, Track, Weights
 from ..decompose import solve_weights
 from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from ..exceptions import InputError
-from ..keyshapes import find_keyshapes
+from ..keyshapes import check_neutral_frame, find_keyshapes
 from ..metrics import face_scale, reconstruction_error
 from ..schemes import resolve_regions, stable_points
 
 __all__ = ["discover_keys", "solve_take", "fit_errors", "head_and_gaze", "arkit_scores", "Solved"]
 
 
-def _check_neutral(track: Track, neutral: int | None, stable: np.ndarray) -> int:
+def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray) -> int:
     if neutral is None:
         return choose_neutral(track, stable=stable)
-    if not 0 <= neutral < track.n_frames:
-        raise InputError(f"--neutral must be a frame in 0..{track.n_frames - 1}; got {neutral}")
-    if not track.valid[neutral]:
-        raise InputError(f"--neutral frame {neutral} has no face; choose a frame where the face was found")
-    return neutral
+    return check_neutral_frame(track, neutral, name="--neutral")
 
 
 def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = "upper-lower",
@@ -73,7 +69,7 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
         raise InputError(f"a track needs at least 2 frames with a face; this one has {valid}")
     region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
     stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
-    neutral = _check_neutral(first, neutral, stable)
+    neutral = _neutral_frame(first, neutral, stable)
     together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps)
     keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
                           neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)

@@ -78,6 +78,23 @@ def add_normalize_option(p, when: str = "mapping: ") -> None:
                         "(stylised rigs whose targets exaggerate; default: the actor's amplitude)")
 
 
+def add_rig_options(p, *, meshes: str | None = None) -> None:
+    """``--rig-unit`` and, when ``meshes`` says what the meshes are chosen for, ``--mesh``."""
+    p.add_argument("--rig-unit", default="m", metavar="UNIT",
+                   help="length unit of OBJ characters: m (default), cm, mm, in, ft or metres per unit")
+    if meshes:
+        p.add_argument("--mesh", action="append", default=None, metavar="NAME",
+                       help=f"glTF mesh(es) {meshes} (repeatable; default: the meshes with morph targets, "
+                            "else all)")
+
+
+def mesh_choice(names: list[str] | None) -> list[int | str] | None:
+    """``--mesh`` values: mesh indices where they are digits, names otherwise (None: the default)."""
+    if names is None:
+        return None
+    return [int(n) if n.isdigit() else n for n in names]
+
+
 def solve_kwargs(args) -> dict:
     return {"smoothness": args.smooth, "upper": args.max, "convex": args.convex}
 

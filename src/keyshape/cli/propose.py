@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..exceptions import InputError
-from ._options import add_correspondence_option, add_normalize_option
+from ._options import add_correspondence_option, add_normalize_option, add_rig_options, mesh_choice
 
 DESCRIPTION = (
     "Propose, for every key shape, the character's version of it, so the character moves without "
@@ -37,11 +37,7 @@ def add_arguments(p) -> None:
     add_correspondence_option(p)
     p.add_argument("--save-correspondence", type=Path, default=None, metavar="CORR.json",
                    help="also write the correspondence used, to check or edit it")
-    p.add_argument("--rig-unit", default="m", metavar="UNIT",
-                   help="length unit of OBJ characters: m (default), cm, mm, in, ft or metres per unit")
-    p.add_argument("--mesh", action="append", default=None, metavar="NAME",
-                   help="glTF mesh(es) to propose targets on (repeatable; default: those with morph targets, "
-                        "else all)")
+    add_rig_options(p, meshes="to propose targets on")
     add_normalize_option(p)
     p.add_argument("--falloff", type=float, default=1.0,
                    help="transfer: how far motion spreads beyond the moving landmarks, in face radii (default 1)")
@@ -83,7 +79,7 @@ def _character(args):
     if args.rig.suffix.lower() in (".glb", ".gltf"):
         from ..io.gltf import read_meshes
 
-        return read_meshes(args.rig, meshes=_meshes(args.mesh))[0], args.rig
+        return read_meshes(args.rig, meshes=mesh_choice(args.mesh))[0], args.rig
     return load_rig(args.rig, unit=parse_unit(args.rig_unit)), None
 
 
@@ -108,7 +104,7 @@ def _propose_targets(args, keys, rig, source) -> None:
 
     auto = auto_targets(keys, rig, correspondence=args.correspondence, route="transfer", falloff=args.falloff)
     _save_correspondence(args, auto.correspondence)
-    written = _write_targets(args.output, auto.rig, source, _meshes(args.mesh))
+    written = _write_targets(args.output, auto.rig, source, mesh_choice(args.mesh))
     if not args.quiet:
         print(f"{written}: {auto.rig.n_targets} proposed targets named after the keys on "
               f"{args.rig or 'the built-in stylised head'} ({auto.rig.n_vertices} vertices); drive it with "
@@ -135,9 +131,3 @@ def _save_correspondence(args, corr) -> None:
         corr.save(args.save_correspondence)
         if not args.quiet:
             print(f"{args.save_correspondence}: {corr.n_corr} landmarks matched to the mesh")
-
-
-def _meshes(names):
-    if names is None:
-        return None
-    return [int(n) if n.isdigit() else n for n in names]

@@ -49,7 +49,7 @@ def run(args) -> None:
     from ..alignment import align, choose_neutral
     from ..exceptions import InputError
     from ..io.track import load_track
-    from ..keyshapes import error_vs_k
+    from ..keyshapes import check_neutral_frame, error_vs_k
     from ..report.plots import error_vs_k as plot_error_vs_k
     from ..schemes import resolve_regions, stable_points
 
@@ -58,7 +58,10 @@ def run(args) -> None:
         raise InputError(f"{args.track}: needs at least 2 frames with a face; has {int(track.valid.sum())}")
     regions = resolve_regions(args.regions, track.n_landmarks)
     stable = stable_points(track.n_landmarks)
-    neutral = choose_neutral(track, stable=stable) if args.neutral is None else _check_neutral(track, args.neutral)
+    if args.neutral is None:
+        neutral = choose_neutral(track, stable=stable)
+    else:
+        neutral = check_neutral_frame(track, args.neutral, name="--neutral")
     aligned, _ = align(track, reference=track.points[neutral], stable=stable)
     ks = range(1, min(args.max_k, int(aligned.valid.sum()) - 1) + 1)
     start = time.perf_counter()
@@ -72,16 +75,6 @@ def run(args) -> None:
                     chosen={r: k for r, (k, _) in chosen.items()})
     if not args.quiet:
         print(_summary(curve, chosen, args, seconds))
-
-
-def _check_neutral(track, frame: int) -> int:
-    from ..exceptions import InputError
-
-    if not 0 <= frame < track.n_frames:
-        raise InputError(f"--neutral must be a frame in 0..{track.n_frames - 1}; got {frame}")
-    if not track.valid[frame]:
-        raise InputError(f"--neutral frame {frame} has no face; choose a frame where the face was found")
-    return frame
 
 
 def _auto_k(curve, max_error: float) -> dict[str, tuple[int, float]]:

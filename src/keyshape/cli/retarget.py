@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..exceptions import InputError
+from ._options import add_rig_options
 
 DESCRIPTION = (
     "Apply the weights to a rig: targets named after the key shapes, or any targets through a "
@@ -40,8 +41,7 @@ def add_arguments(p) -> None:
                         "listing them)")
     p.add_argument("--format", choices=("glb", "usd", "csv", "livelink"), default=None,
                    help="output format for every -o (default: from each suffix; livelink must be asked for)")
-    p.add_argument("--rig-unit", default="m", metavar="UNIT",
-                   help="length unit of OBJ rigs: m (default), cm, mm, in, ft or metres per unit")
+    add_rig_options(p)
     p.add_argument("--head", default=None, metavar="NODE",
                    help="glTF node to turn with the head (default: a joint or node named like 'head' "
                         "above the face meshes)")

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from ..exceptions import InputError
+from ._options import add_rig_options, mesh_choice
 
 DESCRIPTION = (
     "Write KIT/sculpt.glb (the character with one morph target per key shape, named after it, each "
@@ -29,11 +30,7 @@ def add_arguments(p) -> None:
                    help="the take's video (default: the one named in take.json beside KEYS.json)")
     p.add_argument("--track", type=Path, default=None,
                    help="the take's track (default: track.npz beside KEYS.json, else the video is tracked)")
-    p.add_argument("--rig-unit", default="m", metavar="UNIT",
-                   help="length unit of OBJ characters: m (default), cm, mm, in, ft or metres per unit")
-    p.add_argument("--mesh", action="append", default=None, metavar="NAME",
-                   help="glTF mesh to put the targets on (repeatable; default: the meshes with morph "
-                        "targets, else all)")
+    add_rig_options(p, meshes="to put the targets on")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="KIT/")
 
 
@@ -46,7 +43,7 @@ def run(args) -> None:
     video = _video(args)
     track = _track(args, video)
     kit = write_sculpt_kit(keys, args.rig, args.output, track=track, video=video,
-                           unit=parse_unit(args.rig_unit), meshes=_meshes(args.mesh))
+                           unit=parse_unit(args.rig_unit), meshes=mesh_choice(args.mesh))
     if not args.quiet:
         print(f"{kit.folder}: {kit.glb.name} ({keys.n_keys} targets to sculpt), {kit.sheet.name}, "
               f"{kit.readme.name}")
@@ -75,9 +72,3 @@ def _track(args, video: Path):
     from ..capture import track_video
 
     return track_video(video, progress=not args.quiet)
-
-
-def _meshes(names):
-    if names is None:
-        return None
-    return [int(n) if n.isdigit() else n for n in names]

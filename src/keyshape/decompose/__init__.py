@@ -10,6 +10,6 @@ Private modules: ``_solve`` (the public functions and their checks), ``_nnls`` a
 ``_kernels`` and ``_kernels_nnls`` (the numba-compiled kernels; numba is imported only there).
 """
 
-from ._solve import solve_nnls, solve_spacetime, solve_weights
+from ._solve import check_upper, solve_nnls, solve_spacetime, solve_weights
 
-__all__ = ["solve_weights", "solve_nnls", "solve_spacetime"]
+__all__ = ["solve_weights", "solve_nnls", "solve_spacetime", "check_upper"]

@@ -32,13 +32,13 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-_jit = numba.njit(cache=True, nogil=True)
+jit = numba.njit(cache=True, nogil=True)
 
 
 # --------------------------------------------------------------------------- pentadiagonal
 
 
-@_jit
+@jit
 def penta_factor(a0, a1, a2, dinv, e, f):
     """``LDLᵀ`` of ``K`` symmetric pentadiagonal systems, one per column, whose
     off-diagonals are shared by all columns.
@@ -83,7 +83,7 @@ def penta_factor(a0, a1, a2, dinv, e, f):
     return True
 
 
-@_jit
+@jit
 def penta_solve(dinv, e, f, y):
     """Solve ``L D Lᵀ x = y`` in place for ``y (T, K)`` (factors from :func:`penta_factor`).
 
@@ -110,7 +110,7 @@ def penta_solve(dinv, e, f, y):
             y[t, k] = s
 
 
-@_jit
+@jit
 def add_smoothness(Y, X, delta, mu, d0, d1, d2):
     """``Y ← δ_t Y_t + μ (LᵀL X)_t`` in place: with ``Y = X G`` on entry, the Hessian product
     ``P X``. ``d0, d1, d2 (T,)``: the diagonals of ``LᵀL`` (``d1, d2`` padded)."""
@@ -132,7 +132,7 @@ def add_smoothness(Y, X, delta, mu, d0, d1, d2):
 # --------------------------------------------------------------------------- projection
 
 
-@_jit
+@jit
 def _sum_at(v, u, tau):
     """``s(τ) = Σ_i clip(v_i − τ, 0, u_i)``."""
     s = 0.0
@@ -141,7 +141,7 @@ def _sum_at(v, u, tau):
     return s
 
 
-@_jit
+@jit
 def _insert(sorted_, n, value):
     """Insert ``value`` into ``sorted_[:n]`` (ascending); returns ``n + 1``."""
     j = n
@@ -152,7 +152,7 @@ def _insert(sorted_, n, value):
     return n + 1
 
 
-@_jit
+@jit
 def _capped_simplex_row(v, u, out, work):
     """``out ← argmin ‖z − v‖`` over ``{0 ≤ z ≤ u, Σ z ≤ 1}`` for one row (length ``K``).
 
@@ -191,7 +191,7 @@ def _capped_simplex_row(v, u, out, work):
         out[i] = min(max(v[i] - tau, 0.0), u[i])
 
 
-@_jit
+@jit
 def project_rows(V, upper, convex, out):
     """``out ← Π_C(V)`` row by row, ``C = {0 ≤ w ≤ u (, Σ w ≤ 1)}``; ``V, out (T, K)``."""
     T, K = V.shape
@@ -204,7 +204,7 @@ def project_rows(V, upper, convex, out):
                 out[t, k] = min(max(V[t, k], 0.0), upper[k])
 
 
-@_jit
+@jit
 def admm_step(W, Z, U, C, rho, upper, alpha, convex):
     """One ADMM update after the linear step, in place; returns ``‖ΔZ‖²`` and ``‖Ŵ − Z‖²``.
 
@@ -240,7 +240,7 @@ def admm_step(W, Z, U, C, rho, upper, alpha, convex):
     return dz, primal
 
 
-@_jit
+@jit
 def point_multipliers(g, Z, upper, convex, Y):
     """Multipliers ``Y (T, K)`` (filled in place) read off a feasible ``Z (T, K)`` and ``g = c − P Z``.
 
@@ -274,7 +274,7 @@ def point_multipliers(g, Z, upper, convex, Y):
 # --------------------------------------------------------------------------- faces
 
 
-@_jit
+@jit
 def face_band(G, delta, mu, d0, d1, d2, free, sums, rho_s, band):
     """Fill ``band``, zeros on entry, with the lower band ``(T·K, 2K + 1)`` of the face
     system, frame-major (row ``j = t·K + i``).
@@ -302,7 +302,7 @@ def face_band(G, delta, mu, d0, d1, d2, free, sums, rho_s, band):
                 band[j, 2 * K] = mu * d2[t]
 
 
-@_jit
+@jit
 def band_factor(band, free):
     """Cholesky ``M = L Lᵀ`` in place on a lower band ``(n, kd + 1)``; False if not positive definite.
 
@@ -333,7 +333,7 @@ def band_factor(band, free):
     return True
 
 
-@_jit
+@jit
 def band_solve(band, free, x):
     """Solve ``L Lᵀ y = x`` in place for ``x (n,)`` with the factor of :func:`band_factor`."""
     n, w = band.shape

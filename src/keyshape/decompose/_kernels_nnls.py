@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._kernels import _jit
+from ._kernels import jit
 
 KKT_TOL = 1e-11  # relative tolerance of the KKT tests, here and in keyshape.decompose._nnls
 LOWER, FREE, UPPER = 0, 1, 2  # the state of a variable: at 0, free, at its upper bound
 
 
-@_jit
+@jit
 def _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
     """``x`` minimising ``½xᵀGx − cᵀx`` with the bound variables of ``s`` at their bounds.
 
@@ -60,7 +60,7 @@ def _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
     return True
 
 
-@_jit
+@jit
 def block_pivoting(G, C, upper, bounded, state, X):
     """Block principal pivoting (Júdice & Pires 1994; Kim & Park 2011), row by row.
 

@@ -34,7 +34,7 @@ from ..exceptions import InputError
 from ._nnls import nnls_gram
 from ._spacetime import spacetime_gram
 
-__all__ = ["solve_nnls", "solve_spacetime", "solve_weights"]
+__all__ = ["solve_nnls", "solve_spacetime", "solve_weights", "check_upper"]
 
 
 def solve_nnls(
@@ -88,7 +88,7 @@ def solve_nnls(
            [1., 1.]])
     """
     A, B = _check_system(A, B)
-    return nnls_gram(A.T @ A, B @ A, _check_upper(upper, A.shape[1]), bool(convex))
+    return nnls_gram(A.T @ A, B @ A, _upper_bounds(upper, A.shape[1]), bool(convex))
 
 
 def solve_spacetime(
@@ -151,7 +151,7 @@ def solve_spacetime(
            [1., 0.]])
     """
     A, B = _check_system(A, B)
-    upper = _check_upper(upper, A.shape[1])
+    upper = _upper_bounds(upper, A.shape[1])
     return _solve_region(A, B, upper, _check_smoothness(smoothness), bool(convex), _check_tol(tol))
 
 
@@ -204,7 +204,7 @@ def solve_weights(
            [nan, nan]])
     """
     track, keys = _check_take(track, keys)
-    upper = _check_upper(upper, keys.n_keys)
+    upper = _upper_bounds(upper, keys.n_keys)
     smoothness, tol = _check_smoothness(smoothness), _check_tol(tol)
     values = np.zeros((track.n_frames, keys.n_keys))
     for region, landmarks in keys.regions.items():
@@ -255,7 +255,24 @@ def _check_system(A, B):
     return A, B
 
 
-def _check_upper(upper, n_keys):
+def check_upper(upper) -> float | None:
+    """One upper bound for every weight: None (no bound) or a number > 0; returns it as a float.
+
+    The rule of the key-shape search and of the error measures, which take one bound; the solvers
+    also take one bound per key (``_upper_bounds``).
+    """
+    if upper is None:
+        return None
+    try:
+        value = float(upper)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not value > 0:
+        raise InputError(f"upper must be None or a number > 0; got {upper!r}")
+    return value
+
+
+def _upper_bounds(upper, n_keys):
     """(n_keys,) float upper bounds (``inf`` = none) from None, a scalar or a vector."""
     if upper is None:
         return np.full(n_keys, np.inf)

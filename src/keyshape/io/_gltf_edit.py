@@ -217,10 +217,14 @@ def prune(document: pygltflib.GLTF2) -> None:
     """
     if any(not _SAFE_EXTENSIONS.match(e) for e in document.extensionsUsed or []):
         return
-    accessors = _reindex_accessors(document)
-    views = _reindex_views(document)
-    if accessors or views:
-        _rebuild_blob(document, views)
+    accessors = _drop_unused(_accessor_slots(document), document.accessors)
+    if accessors is not None:
+        document.accessors = accessors
+    views = _drop_unused(_view_slots(document), document.bufferViews)
+    if views is not None:
+        document.bufferViews = views
+    if accessors is not None or views is not None:
+        _rebuild_blob(document)
 
 
 def _accessor_slots(document):
@@ -255,19 +259,20 @@ def _set(slot, value) -> None:
         setattr(owner, key, value)
 
 
-def _reindex_accessors(document) -> bool:
-    slots = list(_accessor_slots(document))
+def _drop_unused(slots, items: list) -> list | None:
+    """The ``items`` some slot refers to, the slots renumbered to match; None if every item is used."""
+    slots = list(slots)
     used = sorted({_get(s) for s in slots})
-    if len(used) == len(document.accessors):
-        return False
+    if len(used) == len(items):
+        return None
     new = {old: k for k, old in enumerate(used)}
     for slot in slots:
         _set(slot, new[_get(slot)])
-    document.accessors = [document.accessors[i] for i in used]
-    return True
+    return [items[i] for i in used]
 
 
 def _view_slots(document):
+    """(object, attribute, is_dict) for every reference to a buffer view."""
     for accessor in document.accessors:
         if accessor.bufferView is not None:
             yield accessor, "bufferView", False
@@ -279,20 +284,7 @@ def _view_slots(document):
             yield image, "bufferView", False
 
 
-def _reindex_views(document) -> dict[int, int] | None:
-    slots = list(_view_slots(document))
-    used = sorted({_get(s) for s in slots})
-    if len(used) == len(document.bufferViews):
-        return None
-    new = {old: k for k, old in enumerate(used)}
-    for slot in slots:
-        _set(slot, new[_get(slot)])
-    kept = [document.bufferViews[i] for i in used]
-    document.bufferViews = kept
-    return new
-
-
-def _rebuild_blob(document, views) -> None:
+def _rebuild_blob(document) -> None:
     """Copy the kept views' bytes into a fresh blob (4-byte aligned) and fix their offsets."""
     old = document.binary_blob() or b""
     chunks, length = [], 0

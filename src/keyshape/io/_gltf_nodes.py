@@ -50,7 +50,7 @@ def find_head(document: pygltflib.GLTF2, face_nodes: list[int], *, name: str | N
     if skinned:
         return _head_joint(document, skinned, parent_of)
     common = _common_ancestors(face_nodes, parent_of)
-    heads = [n for n in common if _is_head(document.nodes[n].name)]
+    heads = [n for n in common if is_head(document.nodes[n].name)]
     ranked = [n for n in heads if n in joints] + [n for n in heads if n not in joints]
     if ranked:
         return ranked[0]
@@ -102,13 +102,13 @@ def _descendants(document, node: int) -> list[int]:
     return out
 
 
-def _is_head(name) -> bool:
+def is_head(name) -> bool:
     return bool(name) and bool(_HEAD.search(name)) and not _NOT_HEAD.search(name)
 
 
 def _head_joint(document, skinned, parent_of) -> int | None:
     joints = {j for n in skinned for j in document.skins[document.nodes[n].skin].joints}
-    heads = [j for j in joints if _is_head(document.nodes[j].name)]
+    heads = [j for j in joints if is_head(document.nodes[j].name)]
     return min(heads, key=lambda j: (_depth(j, parent_of), j)) if heads else None
 
 
@@ -150,10 +150,10 @@ def world_rotation(document: pygltflib.GLTF2, node: int | None) -> np.ndarray:
     chain = [] if node is None else _ancestry(node, parent_of)
     for index in reversed(chain):
         matrix = matrix @ local_matrix(document.nodes[index])
-    return _rotation_part(matrix[:3, :3])
+    return rotation_part(matrix[:3, :3])
 
 
-def _rotation_part(linear: np.ndarray) -> np.ndarray:
+def rotation_part(linear: np.ndarray) -> np.ndarray:
     """Nearest rotation (polar decomposition; Higham 1986) of a 3 × 3 matrix."""
     u, _, vt = np.linalg.svd(linear)
     rotation = u @ vt
@@ -169,7 +169,7 @@ def as_trs(node: pygltflib.Node) -> None:
     matrix = local_matrix(node)
     scale = np.linalg.norm(matrix[:3, :3], axis=0)
     node.translation = matrix[:3, 3].tolist()
-    node.rotation = Rotation.from_matrix(_rotation_part(matrix[:3, :3])).as_quat().tolist()
+    node.rotation = Rotation.from_matrix(rotation_part(matrix[:3, :3])).as_quat().tolist()
     node.scale = scale.tolist()
     node.matrix = None
 

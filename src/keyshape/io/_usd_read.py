@@ -39,7 +39,7 @@ class UsdAnimation(NamedTuple):
 # --------------------------------------------------------------------------- reading
 
 
-def _open(path):
+def open_stage(path):
     _, _, Tf, Usd, _, _, _, _ = _pxr()
     path = Path(path)
     if not path.is_file():
@@ -78,7 +78,7 @@ def read_rig(path) -> Rig:
         Without ``usd-core``.
     """
     _, _, _, _, UsdGeom, UsdSkel, _, _ = _pxr()
-    stage = _open(path)
+    stage = open_stage(path)
     parts = [_read_mesh(prim) for prim in stage.Traverse()
              if prim.IsA(UsdGeom.Mesh) and prim.HasAPI(UsdSkel.BindingAPI)]
     parts = [p for p in parts if p is not None]
@@ -164,7 +164,7 @@ def read_usd_animation(path) -> UsdAnimation:
         If the file has no SkelAnimation with blend-shape weights.
     """
     _, _, _, _, _, UsdSkel, _, _ = _pxr()
-    stage = _open(path)
+    stage = open_stage(path)
     animations = [UsdSkel.Animation(p) for p in stage.Traverse() if p.IsA(UsdSkel.Animation)]
     ours = [a for a in animations if a.GetPrim().GetName() in ("keyshape", ANIMATION)]
     animation = (ours or animations or [None])[0]
@@ -193,7 +193,7 @@ def deformed_points(path, frame: int) -> np.ndarray:
     skinning and unit conversion are not applied. For checking written files.
     """
     _, _, _, Usd, _, UsdSkel, _, _ = _pxr()
-    stage = _open(path)
+    stage = open_stage(path)
     cache = UsdSkel.Cache()
     for root in (p for p in stage.Traverse() if p.IsA(UsdSkel.Root)):
         cache.Populate(UsdSkel.Root(root), Usd.TraverseInstanceProxies())

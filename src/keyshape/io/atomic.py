@@ -1,4 +1,4 @@
-"""Atomic file writes: a failed write leaves no half-written file behind."""
+"""Atomic file writes (a failed write leaves no half-written file behind), and the check every reader makes."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path"]
+from ..exceptions import InputError
+
+__all__ = ["atomic_path", "existing_file"]
 
 
 def _umask() -> int:
@@ -35,3 +37,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def existing_file(path: str | Path) -> Path:
+    """``path`` as a Path if it is a file; else InputError naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    return path

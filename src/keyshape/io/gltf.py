@@ -39,21 +39,19 @@ import pygltflib
 
 from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, RigError
+from ..schemes import head_rotations, hold_valid, rotations_to_gltf
 from . import _gltf_edit as edit
 from ._gltf_anim import (
-    _IMAGE_TO_GLTF,
-    _add_node_rotation,
-    _add_rotation,
-    _animation,
-    _check_eyes,
-    _check_names,
-    _check_poses,
-    _fill_invalid,
-    _mesh_weights,
-    _pose_quaternions,
-    _times,
-    _weights_output,
-    head_rotations,
+    add_node_rotation,
+    add_rotation,
+    check_eyes,
+    check_names,
+    check_poses,
+    mesh_weights,
+    new_animation,
+    pose_quaternions,
+    time_accessor,
+    weights_output,
 )
 from ._gltf_nodes import find_eyes, find_head
 from ._gltf_read import (
@@ -121,11 +119,11 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
     """
     path = Path(path)
     _check_suffix(path)
-    _check_names(rig.names, weights)
+    check_names(rig.names, weights)
     if rig.n_targets == 0:
         raise RigError("the rig has no morph targets to animate")
-    _check_poses(poses, weights)
-    rotations = None if poses is None else _pose_quaternions(poses)
+    check_poses(poses, weights)
+    rotations = None if poses is None else pose_quaternions(poses)
     return _save(path, _build_document(rig, weights, rotations))
 
 
@@ -160,11 +158,11 @@ def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) ->
         )
     )
     if weights.n_frames:
-        times = _times(blob, weights)
-        output = _weights_output(blob, weights.values)
-        document.animations.append(_animation(times, [(0, output)], "performance"))
+        times = time_accessor(blob, weights)
+        output = weights_output(blob, weights.values)
+        document.animations.append(new_animation(times, [(0, output)], "performance"))
         if rotations is not None:
-            _add_rotation(document.animations[0], blob, times, 0, rotations)
+            add_rotation(document.animations[0], blob, times, 0, rotations)
     blob.finish()
     return document
 
@@ -233,8 +231,8 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     """
     path, source = Path(path), Path(source)
     _check_suffix(path)
-    _check_poses(poses, weights)
-    _check_eyes(eyes, weights)
+    check_poses(poses, weights)
+    check_eyes(eyes, weights)
     document, buffers = load_document(source)
     meshes = morph_meshes(document, source)
     _check_known(document, meshes, weights, source)
@@ -263,7 +261,7 @@ def _check_known(document, meshes, weights: Weights, source) -> None:
 
 def _performance(document, blob, meshes, weights, source) -> tuple[pygltflib.Animation, list[int]]:
     """The ``keyshape`` animation with a ``weights`` channel per face node, and those nodes."""
-    times = _times(blob, weights)
+    times = time_accessor(blob, weights)
     outputs, by_mesh = [], {}
     nodes = edit.morph_nodes(document, meshes)
     if not nodes:
@@ -271,9 +269,9 @@ def _performance(document, blob, meshes, weights, source) -> tuple[pygltflib.Ani
     for node in nodes:
         mesh = document.nodes[node].mesh
         if mesh not in by_mesh:
-            by_mesh[mesh] = _weights_output(blob, _mesh_weights(document.meshes[mesh], weights))
+            by_mesh[mesh] = weights_output(blob, mesh_weights(document.meshes[mesh], weights))
         outputs.append((node, by_mesh[mesh]))
-    return _animation(times, outputs, ANIMATION), nodes
+    return new_animation(times, outputs, ANIMATION), nodes
 
 
 def _turn_head(document, blob, animation, nodes, poses, head, source) -> None:
@@ -285,7 +283,7 @@ def _turn_head(document, blob, animation, nodes, poses, head, source) -> None:
                       "face meshes): the head rotation is not written; name the node to turn", UserWarning,
                       stacklevel=4)
         return
-    _add_node_rotation(document, blob, animation, index, head_rotations(poses))
+    add_node_rotation(document, blob, animation, index, head_rotations(poses, hold=True))
 
 
 def _turn_eyes(document, blob, animation, nodes, eyes, names, source) -> None:
@@ -297,8 +295,7 @@ def _turn_eyes(document, blob, animation, nodes, eyes, names, source) -> None:
         return
     eyes = np.asarray(eyes, dtype=float)
     for side, node in enumerate(found):
-        rotations = _fill_invalid(eyes[:, side])
-        _add_node_rotation(document, blob, animation, node, _IMAGE_TO_GLTF @ rotations @ _IMAGE_TO_GLTF)
+        add_node_rotation(document, blob, animation, node, rotations_to_gltf(hold_valid(eyes[:, side])))
 
 
 # --------------------------------------------------------------------------- new targets

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..containers import KeyShapes
 from ..exceptions import InputError
-from .atomic import atomic_path
+from .atomic import atomic_path, existing_file
 
 __all__ = ["save_keys", "load_keys", "keys_to_dict", "keys_from_dict"]
 
@@ -85,9 +85,7 @@ def save_keys(keys: KeyShapes, path: str | Path) -> Path:
 
 def load_keys(path: str | Path) -> KeyShapes:
     """Read a key file written by ``keyshape keys``."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    path = existing_file(path)
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:

@@ -32,7 +32,8 @@ from scipy.spatial.transform import Rotation
 
 from ..containers import Poses, Weights
 from ..exceptions import InputError, RigError
-from .atomic import atomic_path
+from ..schemes import head_rotations, hold_valid, rotations_to_gltf
+from .atomic import atomic_path, existing_file
 
 __all__ = ["LIVELINK_NAMES", "ROTATION_NAMES", "write_livelink_csv", "read_livelink_csv",
            "livelink_columns", "LiveLinkTake"]
@@ -52,7 +53,6 @@ LIVELINK_NAMES = (
 )
 ROTATION_NAMES = ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
                   "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
-_IMAGE_TO_GLTF = np.diag([1.0, -1.0, -1.0])
 HEADER = ("Timecode", "BlendShapeCount", *LIVELINK_NAMES, *ROTATION_NAMES)
 _SIDE = re.compile(r"[_.\s-](l|r)$", re.IGNORECASE)
 _TIMECODE = re.compile(r"^(\d+):(\d\d):(\d\d)[:;](\d+)(?:\.(\d+))?$")
@@ -144,21 +144,21 @@ def write_livelink_csv(path, weights: Weights, *, poses: Poses | None = None,
     InputError
         If ``poses`` has another frame count.
     """
-    from ._gltf_anim import _check_eyes, _check_poses, _fill_invalid, head_rotations
+    from ._gltf_anim import check_eyes, check_poses
 
     sources, _ = livelink_columns(weights.names)
     if not sources:
         raise RigError(f"no ARKit-named targets among {list(weights.names)[:12]}...: Live Link Face "
                        "needs names such as jawOpen, eyeBlinkLeft or eyeBlink_L")
-    _check_poses(poses, weights)
-    _check_eyes(eyes, weights)
+    check_poses(poses, weights)
+    check_eyes(eyes, weights)
     table = _coefficients(weights, sources)
     angles = np.zeros((weights.n_frames, len(ROTATION_NAMES)))
     if poses is not None:
-        angles[:, :3] = head_angles(head_rotations(poses))
+        angles[:, :3] = head_angles(head_rotations(poses, hold=True))
     for side in range(2 if eyes is not None else 0):
-        rotations = _fill_invalid(np.asarray(eyes, dtype=float)[:, side])
-        angles[:, 3 + 3 * side:6 + 3 * side] = head_angles(_IMAGE_TO_GLTF @ rotations @ _IMAGE_TO_GLTF)
+        rotations = hold_valid(np.asarray(eyes, dtype=float)[:, side])
+        angles[:, 3 + 3 * side:6 + 3 * side] = head_angles(rotations_to_gltf(rotations))
     _write_rows(path, weights.fps, table, angles)
     return Path(path)
 
@@ -245,8 +245,7 @@ def read_livelink_csv(path, *, fps: float = 60.0) -> LiveLinkTake:
 
 
 def _read_rows(path: Path) -> list[list[str]]:
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    existing_file(path)
     try:
         with open(path, newline="", encoding="utf-8") as handle:
             rows = list(csv.reader(handle))

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..containers import KeyShapes, Rig
+from ..containers import Rig
 from ..exceptions import InputError, RigError
 from .atomic import atomic_path
 
-__all__ = ["load_rig", "rig_from_keyshapes", "save_obj_folder", "read_obj", "parse_unit", "RIG_SUFFIXES"]
+__all__ = ["load_rig", "save_obj_folder", "read_obj", "parse_unit", "RIG_SUFFIXES"]
 
 NEUTRAL = "neutral"
 GLTF_SUFFIXES = (".glb", ".gltf")
@@ -38,7 +38,6 @@ USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 RIG_SUFFIXES = (*GLTF_SUFFIXES, *USD_SUFFIXES, ".obj")
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 # image (x right, y down, z away from camera) -> glTF (x right, y up, z toward viewer)
-_IMAGE_TO_GLTF = np.array([1.0, -1.0, -1.0])
 _SAFE_NAME = re.compile(r"^[^/\\:*?\"<>|\x00-\x1f]+$")
 
 
@@ -332,70 +331,3 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
     with atomic_path(path) as tmp:
         tmp.write_text("# written by keyshape\n" + "\n".join(lines) + "\n", encoding="utf-8")
-
-
-# --------------------------------------------------------------------------- default character
-
-
-def rig_from_keyshapes(keys: KeyShapes, faces, *, size: float = 0.2) -> Rig:
-    """The default character: a face mesh over the key shapes' neutral landmarks.
-
-    Landmarks in canonical image coordinates (pixels; x right, y down, z on the x scale
-    pointing away from the camera, as MediaPipe) become glTF coordinates (metres, +Y up,
-    +Z toward the viewer): ``(x, y, z) -> (x, −y, −z)``, centred on the bounding box
-    and scaled so the neutral face is ``size`` metres tall. Each key becomes one target,
-    named after the key, its delta transformed the same way, so the key weights drive
-    the mesh unchanged ("a smile for a smile").
-
-    Parameters
-    ----------
-    keys : KeyShapes
-        ``neutral (n_landmarks, 2 or 3)``; 2D landmarks get z = 0.
-    faces : (n_faces, 3) int
-        Triangles over the landmarks (e.g. MediaPipe's tesselation).
-    size : float, keyword-only
-        Face height in metres.
-
-    Returns
-    -------
-    Rig
-        ``n_vertices = n_landmarks``, ``names = keys.names``.
-
-    Examples
-    --------
-    >>> keys = KeyShapes(np.array([[0., 0., 0.], [10., 0., 0.], [0., 20., 5.]]),
-    ...                  np.array([[[0., 0., 0.], [0., 0., 0.], [0., 2., 0.]]]),
-    ...                  ("open",), [3], ("whole",), {"whole": [0, 1, 2]})
-    >>> rig = rig_from_keyshapes(keys, [[0, 1, 2]], size=0.2)
-    >>> float(np.ptp(rig.vertices[:, 1])), rig.deltas[0, 2].tolist()
-    (0.2, [0.0, -0.02, 0.0])
-    """
-    neutral, deltas = _as_xyz(keys.neutral), _as_xyz(keys.deltas)
-    faces = _check_faces(faces, len(neutral))
-    if not np.isfinite(neutral).all() or not np.isfinite(deltas).all():
-        raise InputError("key shapes must be finite to build a rig")
-    height = np.ptp(neutral[:, 1])
-    if not size > 0 or height <= 0:
-        raise InputError(f"size must be > 0 and the neutral face must have height; got size={size!r}, "
-                         f"height={height:g} px")
-    scale = size / height
-    centre = (neutral.min(axis=0) + neutral.max(axis=0)) / 2
-    vertices = (neutral - centre) * _IMAGE_TO_GLTF * scale + 0.0  # + 0.0: no negative zeros
-    return Rig(vertices, faces, deltas * _IMAGE_TO_GLTF * scale + 0.0, tuple(keys.names))
-
-
-def _as_xyz(points: np.ndarray) -> np.ndarray:
-    """(..., 3) float: 2D points get z = 0."""
-    points = np.asarray(points, dtype=float)
-    if points.shape[-1] == 3:
-        return points
-    return np.concatenate([points, np.zeros(points.shape[:-1] + (1,))], axis=-1)
-
-
-def _check_faces(faces, n_vertices: int) -> np.ndarray:
-    faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise InputError(f"faces must be an (n_faces, 3) int array; got shape {faces.shape}, {faces.dtype}")
-    if faces.size and (faces.min() < 0 or faces.max() >= n_vertices):
-        raise InputError(f"faces must index landmarks 0..{n_vertices - 1}; got {faces.min()}..{faces.max()}")
-    return faces.astype(np.int64)

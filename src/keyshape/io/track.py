@@ -10,7 +10,7 @@ import numpy as np
 
 from ..containers import Track
 from ..exceptions import InputError
-from .atomic import atomic_path
+from .atomic import atomic_path, existing_file
 
 __all__ = ["save_track", "load_track"]
 
@@ -81,9 +81,7 @@ def load_track(path: str | Path, *, fps: float | None = None) -> Track:
     ``time`` column in seconds after ``frame``), coordinates in pixels, empty cells for frames
     without a face. Its frame rate comes from the time column, else ``fps``, else 30.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    path = existing_file(path)
     if path.suffix.lower() == ".csv":
         return _load_csv_track(path, fps)
     try:

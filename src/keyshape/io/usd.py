@@ -30,7 +30,7 @@ import numpy as np
 from ..containers import Poses, Rig, Weights
 from ..exceptions import InputError, RigError
 from ._pxr import pxr as _pxr
-from ._usd_read import ANIMATION, UsdAnimation, _open, check_usd, deformed_points, read_rig, read_usd_animation
+from ._usd_read import ANIMATION, UsdAnimation, check_usd, deformed_points, open_stage, read_rig, read_usd_animation
 from .atomic import atomic_path
 
 __all__ = ["write_usd", "animate_usd", "read_rig", "read_usd_animation", "deformed_points", "check_usd",
@@ -69,14 +69,14 @@ def write_usd(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
     RigError, InputError
         As :func:`keyshape.io.gltf.write_glb` (names, frame counts), or a bad suffix.
     """
-    from ._gltf_anim import _check_names, _check_poses, _pose_quaternions
+    from ._gltf_anim import check_names, check_poses, pose_quaternions
 
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
         raise InputError(f"USD output must end in one of {USD_SUFFIXES}; got {str(path)!r}")
-    _check_names(rig.names, weights)
-    _check_poses(poses, weights)
-    quats = None if poses is None else _pose_quaternions(poses)
+    check_names(rig.names, weights)
+    check_poses(poses, weights)
+    quats = None if poses is None else pose_quaternions(poses)
     stage = _build_stage(rig, weights, quats)
     with atomic_path(path) as tmp:
         _export(stage, tmp)
@@ -107,7 +107,7 @@ def _build_stage(rig: Rig, weights: Weights, quats: np.ndarray | None):
     skeleton = _skeleton(stage)
     mesh = _mesh(stage, rig)
     _blend_shapes(stage, mesh, skeleton, rig)
-    _animation(stage, skeleton, rig, weights, quats)
+    new_animation(stage, skeleton, rig, weights, quats)
     return stage
 
 
@@ -180,7 +180,7 @@ def _identifiers(names, Tf) -> list[str]:
     return out
 
 
-def _animation(stage, skeleton, rig: Rig, weights: Weights, quats: np.ndarray | None) -> None:
+def new_animation(stage, skeleton, rig: Rig, weights: Weights, quats: np.ndarray | None) -> None:
     Gf, _, _, Usd, _, UsdSkel, _, Vt = _pxr()
     animation = UsdSkel.Animation.Define(stage, f"{ROOT}/{ANIMATION}")
     animation.CreateJointsAttr([JOINT])
@@ -234,18 +234,19 @@ def animate_usd(source, weights: Weights, path, *, poses: Poses | None = None) -
         No blend-shape mesh, one without a skeleton, or names the stage lacks. (Poses with no
         joint named like ``head`` are not written, with a warning.)
     """
-    from ._gltf_anim import _check_poses, head_rotations
+    from ..schemes import head_rotations
+    from ._gltf_anim import check_poses
 
     _, _, _, Usd, _, _, _, _ = _pxr()
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
         raise InputError(f"USD output must end in one of {USD_SUFFIXES}; got {str(path)!r}")
-    _check_poses(poses, weights)
-    stage = Usd.Stage.Open(_open(source).Flatten())
+    check_poses(poses, weights)
+    stage = Usd.Stage.Open(open_stage(source).Flatten())
     skeletons = _bound_skeletons(stage, source)
     _check_channels(skeletons, weights, source)
     _set_timing(stage, weights)
-    world = None if poses is None else _to_stage_axes(stage, head_rotations(poses))
+    world = None if poses is None else _to_stage_axes(stage, head_rotations(poses, hold=True))
     for skeleton, channels in skeletons.values():
         _add_animation(stage, skeleton, channels, weights, world, source)
     with atomic_path(path) as tmp:
@@ -331,9 +332,9 @@ def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, wor
 
 
 def _head_joint(joints) -> int | None:
-    from ._gltf_nodes import _is_head
+    from ._gltf_nodes import is_head
 
-    heads = [k for k, joint in enumerate(joints) if _is_head(str(joint).rsplit("/", 1)[-1])]
+    heads = [k for k, joint in enumerate(joints) if is_head(str(joint).rsplit("/", 1)[-1])]
     return min(heads, key=lambda k: (str(joints[k]).count("/"), k)) if heads else None
 
 
@@ -341,16 +342,16 @@ def _head_local(skeleton, joints, rest, head: int, world: np.ndarray) -> np.ndar
     """(n_frames, 4) quaternions (x, y, z, w): ``Pᵀ D P R`` in skeleton space (column vectors)."""
     from scipy.spatial.transform import Rotation
 
-    from ._gltf_nodes import _rotation_part, continuous_hemisphere
+    from ._gltf_nodes import continuous_hemisphere, rotation_part
 
     _, _, _, Usd, UsdGeom, UsdSkel, _, _ = _pxr()
     topology = UsdSkel.Topology(joints)
     skel_space = UsdSkel.ConcatJointTransforms(topology, rest)
     to_world = np.asarray(UsdGeom.Xformable(skeleton.GetPrim()).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
-    s = _rotation_part(to_world[:3, :3].T)  # USD matrices act on row vectors: transpose
+    s = rotation_part(to_world[:3, :3].T)  # USD matrices act on row vectors: transpose
     parent = topology.GetParent(head)
-    p = np.eye(3) if parent < 0 else _rotation_part(np.asarray(skel_space[parent])[:3, :3].T)
-    r = _rotation_part(np.asarray(rest[head])[:3, :3].T)
+    p = np.eye(3) if parent < 0 else rotation_part(np.asarray(skel_space[parent])[:3, :3].T)
+    r = rotation_part(np.asarray(rest[head])[:3, :3].T)
     d = np.einsum("ji,fjk,kl->fil", s, world, s)  # D in skeleton space: Sᵀ D S
     local = np.einsum("ji,fjk,kl,lm->fim", p, d, p, r)  # Pᵀ D P R
     return continuous_hemisphere(Rotation.from_matrix(local).as_quat())

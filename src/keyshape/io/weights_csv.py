@@ -9,7 +9,7 @@ import numpy as np
 
 from ..containers import Weights
 from ..exceptions import InputError
-from .atomic import atomic_path
+from .atomic import atomic_path, existing_file
 
 __all__ = ["save_weights_csv", "load_weights_csv"]
 
@@ -30,9 +30,7 @@ def save_weights_csv(weights: Weights, path: str | Path) -> Path:
 
 def load_weights_csv(path: str | Path) -> Weights:
     """Read a weights CSV; the frame rate is recovered from the time column."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    path = existing_file(path)
     try:
         with open(path, newline="") as fh:
             rows = list(csv.reader(fh))

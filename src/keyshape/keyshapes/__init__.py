@@ -10,7 +10,17 @@ search and its objective), ``_select_pca`` (the paper's PCA methods and the cand
 """
 
 from ._kcurve import CURVE_METHODS, KCurve, error_vs_k
-from ._search import MAX_CANDIDATES, MAX_ERROR, MAX_KEYS, METHODS, KChoice, choose_n_keys, find_keyshapes
+from ._search import (
+    MAX_CANDIDATES,
+    MAX_ERROR,
+    MAX_KEYS,
+    METHODS,
+    KChoice,
+    check_neutral_frame,
+    choose_n_keys,
+    find_keyshapes,
+)
 
 __all__ = ["find_keyshapes", "choose_n_keys", "KChoice", "error_vs_k", "KCurve",
-           "METHODS", "CURVE_METHODS", "MAX_ERROR", "MAX_KEYS", "MAX_CANDIDATES"]
+           "METHODS", "CURVE_METHODS", "MAX_ERROR", "MAX_KEYS", "MAX_CANDIDATES",
+           "check_neutral_frame"]

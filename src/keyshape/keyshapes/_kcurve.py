@@ -34,11 +34,12 @@ from itertools import islice
 import numpy as np
 
 from ..containers import Track
+from ..decompose import check_upper
 from ..exceptions import InputError
 from ..metrics import face_scale
 from . import _search as keyshapes
 from . import _select
-from ._search import _candidates, _check_neutral, _check_regions, _check_upper, _region_data
+from ._search import candidate_frames, check_neutral_frame, check_regions, region_data
 from ._select_pca import scatter
 
 __all__ = ["CURVE_METHODS", "KCurve", "error_vs_k"]
@@ -131,16 +132,16 @@ def error_vs_k(
     >>> curve.unit, curve.errors["spa"]["upper"].round(6).tolist()
     ('% face size', [1.040287, 0.0, 0.0])
     """
-    regions = _check_regions(regions, aligned.n_landmarks)
-    neutral_frame = _check_neutral(neutral_frame, aligned)
-    upper = _check_upper(upper)
+    regions = check_regions(regions, aligned.n_landmarks)
+    neutral_frame = check_neutral_frame(aligned, neutral_frame)
+    upper = check_upper(upper)
     methods = _check_methods(methods)
-    candidates = _candidates(aligned, neutral_frame)
+    candidates = candidate_frames(aligned, neutral_frame)
     ks = _check_ks(ks, candidates.size)
     scale, unit = face_scale(aligned.points[neutral_frame])
     errors: dict[str, dict[str, np.ndarray]] = {m: {} for m in methods}
     for region, landmarks in regions.items():
-        data = _region_data(aligned, candidates, neutral_frame, landmarks)
+        data = region_data(aligned, candidates, neutral_frame, landmarks)
         to_percent = 100.0 / (scale * np.sqrt((candidates.size + 1) * len(landmarks)))
         squared = _region_curves(data, ks, methods, upper)
         for method in methods:

@@ -64,12 +64,14 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from ..containers import KeyShapes, Track
+from ..decompose import check_upper
 from ..defaults import DEFAULT_UPPER
 from ..exceptions import InputError
 from ..metrics import face_scale
 from . import _select
 
-__all__ = ["MAX_CANDIDATES", "MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "choose_n_keys", "find_keyshapes"]
+__all__ = ["MAX_CANDIDATES", "MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "choose_n_keys", "find_keyshapes",
+           "check_neutral_frame"]
 
 Method = Literal["spa", "spread", "hull"]
 METHODS: tuple[str, ...] = ("spa", "spread", "hull")
@@ -168,16 +170,16 @@ def find_keyshapes(
     """
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}; got {method!r}")
-    regions = _check_regions(regions, aligned.n_landmarks)
-    neutral_frame = _check_neutral(neutral_frame, aligned)
-    upper = _check_upper(upper)
-    candidates = _candidates(aligned, neutral_frame)
+    regions = check_regions(regions, aligned.n_landmarks)
+    neutral_frame = check_neutral_frame(aligned, neutral_frame)
+    upper = check_upper(upper)
+    candidates = candidate_frames(aligned, neutral_frame)
     if isinstance(n_keys, str) and n_keys == "auto":
         picked = _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys)
         rows = {region: pick[0] for region, pick in picked.items()}
     else:
         counts = _check_counts(n_keys, regions)
-        rows = {region: _select_rows(_region_data(aligned, candidates, neutral_frame, landmarks),
+        rows = {region: _select_rows(region_data(aligned, candidates, neutral_frame, landmarks),
                                      counts[region], method, upper, region)
                 for region, landmarks in regions.items()}
     frames = [int(candidates[i]) for region in regions for i in rows[region]]
@@ -246,21 +248,21 @@ def choose_n_keys(
     """
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}; got {method!r}")
-    regions = _check_regions(regions, aligned.n_landmarks)
-    neutral_frame = _check_neutral(neutral_frame, aligned)
-    picked = _auto(aligned, regions, neutral_frame, method, _check_upper(upper), max_error, max_keys)
+    regions = check_regions(regions, aligned.n_landmarks)
+    neutral_frame = check_neutral_frame(aligned, neutral_frame)
+    picked = _auto(aligned, regions, neutral_frame, method, check_upper(upper), max_error, max_keys)
     return {region: KChoice(len(rows), error) for region, (rows, error) in picked.items()}
 
 
 def _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys):
     """region -> (rows of the candidates, RMS error in %): the fewest keys below ``max_error``."""
     max_error, max_keys = _check_target(max_error, max_keys)
-    candidates = _candidates(aligned, neutral_frame)
+    candidates = candidate_frames(aligned, neutral_frame)
     n_valid = candidates.size + 1  # the neutral frame counts, with zero error
     scale, _ = face_scale(aligned.points[neutral_frame])
     out = {}
     for region, landmarks in regions.items():
-        data = _region_data(aligned, candidates, neutral_frame, landmarks)
+        data = region_data(aligned, candidates, neutral_frame, landmarks)
         to_percent = 100.0 / (scale * np.sqrt(n_valid * len(landmarks)))  # sqrt(Σ|r|²) -> RMS %
         pool = _select.pool(data, MAX_CANDIDATES)
         objective = _select.Objective(pool.X, upper)
@@ -275,13 +277,13 @@ def _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys):
     return out
 
 
-def _candidates(aligned: Track, neutral_frame: int) -> np.ndarray:
+def candidate_frames(aligned: Track, neutral_frame: int) -> np.ndarray:
     """``(n_candidates,)`` int: the valid frames but the neutral one."""
     candidates = np.flatnonzero(aligned.valid)
     return candidates[candidates != neutral_frame]
 
 
-def _region_data(aligned: Track, candidates: np.ndarray, neutral_frame: int, landmarks) -> np.ndarray:
+def region_data(aligned: Track, candidates: np.ndarray, neutral_frame: int, landmarks) -> np.ndarray:
     """``X (n_candidates, n_region_landmarks · n_dims)``: candidate frames − neutral frame."""
     points = aligned.points[np.ix_(candidates, landmarks)]  # no copy of the other landmarks
     points -= aligned.points[neutral_frame, landmarks]
@@ -325,7 +327,7 @@ def _key_names(key_regions: list[str]) -> tuple[str, ...]:
     return tuple(names)
 
 
-def _check_regions(regions, n_landmarks: int) -> dict[str, np.ndarray]:
+def check_regions(regions, n_landmarks: int) -> dict[str, np.ndarray]:
     if not isinstance(regions, dict) or not regions:
         raise InputError(f"regions must be a non-empty dict of name -> landmark indices; got {regions!r}")
     out = {}
@@ -354,24 +356,14 @@ def _check_counts(n_keys, regions: dict) -> dict[str, int]:
     return {name: int(counts[name]) for name in regions}
 
 
-def _check_neutral(neutral_frame, aligned: Track) -> int:
-    if not isinstance(neutral_frame, (int, np.integer)) or not 0 <= neutral_frame < aligned.n_frames:
-        raise InputError(f"neutral_frame must be a frame index in 0..{aligned.n_frames - 1}; got {neutral_frame!r}")
-    if not aligned.valid[neutral_frame]:
-        raise InputError(f"neutral_frame {neutral_frame} has no face (NaN); choose a valid frame")
-    return int(neutral_frame)
-
-
-def _check_upper(upper) -> float | None:
-    if upper is None:
-        return None
-    try:
-        value = float(upper)
-    except (TypeError, ValueError):
-        value = float("nan")
-    if not value > 0:
-        raise InputError(f"upper must be None or a number > 0; got {upper!r}")
-    return value
+def check_neutral_frame(track: Track, frame, *, name: str = "neutral_frame") -> int:
+    """``frame`` as an int if it is a frame of ``track`` with a face; ``name`` is the argument's
+    name in the message (``--neutral`` on the command line)."""
+    if not isinstance(frame, (int, np.integer)) or not 0 <= frame < track.n_frames:
+        raise InputError(f"{name} must be a frame in 0..{track.n_frames - 1}; got {frame!r}")
+    if not track.valid[frame]:
+        raise InputError(f"{name} frame {frame} has no face; choose a frame where the face was found")
+    return int(frame)
 
 
 def _check_target(max_error, max_keys) -> tuple[float, int]:

@@ -44,7 +44,7 @@ from itertools import islice
 import numpy as np
 
 from ..decompose import solve_nnls
-from ._select_exchange import _addition_gain, _column_blocks, _fit_added, refine
+from ._select_exchange import addition_gain, column_blocks, fit_added, refine
 from ._select_pca import Pool, hull, pool, principal_axes, spread
 
 __all__ = ["MIN_STRENGTH", "Objective", "Pool", "hull", "pool", "principal_axes", "refine", "spa", "spa_steps",
@@ -180,7 +180,7 @@ def spa_steps(X: np.ndarray, *, upper: float | None = None, objective: Objective
     2. ``K → K + 1``: three candidate rows are fitted with the keys and the best is added:
        the successive-projection choice (Gillis & Vavasis 2014, Algorithm 1: the row
        farthest from the span of the keys), the row of largest first-order gain in ``E_u``
-       (``_addition_gain``) and the worst-explained row.
+       (``addition_gain``) and the worst-explained row.
     3. The set is refined by exchanges that lower ``E_u`` (``refine``).
     4. If the paper's ``spread`` or ``hull`` set of the same size (when it has only strong
        rows) has an exact error no larger, the exchanges are run from the better of them
@@ -231,7 +231,7 @@ def _best_single(gram: np.ndarray, bound: float, allowed: np.ndarray) -> int:
     """The allowed row ``c`` minimising ``Σ_f min_{0 ≤ a ≤ u} |x_f − a x_c|²`` (all at once)."""
     diag = np.maximum(np.diag(gram), 1e-300)
     error = np.empty(len(diag))
-    for cols in _column_blocks(len(diag)):  # by blocks of columns: no second H-sized array
+    for cols in column_blocks(len(diag)):  # by blocks of columns: no second H-sized array
         h, d = gram[:, cols], diag[cols]
         a = np.clip(h / d, 0.0, bound)  # a_fc, the best weight of c in frame f
         error[cols] = (a * (a * d - 2 * h)).sum(axis=0)
@@ -244,9 +244,9 @@ def _grow(obj: Objective, keys: list[int], weights: np.ndarray, cost: np.ndarray
     taken[keys] = True
     basis = np.linalg.qr(obj.X[keys].T)[0]  # orthonormal span of the keys
     far = np.diag(gram) - ((obj.X @ basis) ** 2).sum(axis=1)  # squared distance to the span
-    scores = (far, _addition_gain(gram, keys, weights, obj.bound), cost)
+    scores = (far, addition_gain(gram, keys, weights, obj.bound), cost)
     proposals = list(dict.fromkeys(int(np.argmax(np.where(taken, -np.inf, s))) for s in scores))
-    trials = [_fit_added(gram, keys, weights, new, obj.bound) for new in proposals]
+    trials = [fit_added(gram, keys, weights, new, obj.bound) for new in proposals]
     best = int(np.argmin([c.sum() for _, c in trials]))
     return [*keys, proposals[best]], *trials[best]
 

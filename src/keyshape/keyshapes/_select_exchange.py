@@ -20,7 +20,7 @@ __all__ = ["refine"]
 _BLOCK = 256  # columns of H-sized temporaries computed at a time
 
 
-def _fit_added(gram, keys, weights, new, bound, sweeps: int = 12):
+def fit_added(gram, keys, weights, new, bound, sweeps: int = 12):
     """Weights and costs of ``keys + [new]``, refitting only where ``new`` can help."""
     grown = [*keys, new]
     w = np.column_stack([weights, np.zeros(len(gram))])
@@ -35,7 +35,7 @@ def refine(gram: np.ndarray, keys: list[int], weights: np.ndarray, cost: np.ndar
     """Improve a key set by exchanges that lower ``E_u`` (``u = bound``).
 
     Each step proposes a row to add, alternately the one of largest first-order gain
-    (``_addition_gain``) and the worst-explained one; fits the keys plus that row; and
+    (``addition_gain``) and the worst-explained one; fits the keys plus that row; and
     tries dropping each of the least important keys (smallest ``G_kk Σ_f w_fk²``, the
     cost of zeroing ``w_k``). The best exchange is kept if it lowers ``E_u``. A proposal
     that fails is not proposed again until the next exchange; the search stops after
@@ -61,7 +61,7 @@ def refine(gram: np.ndarray, keys: list[int], weights: np.ndarray, cost: np.ndar
     swaps = fails = 0
     tol = 1e-9 * np.trace(gram)
     while swaps < max_swaps and fails < patience:
-        score = _addition_gain(gram, keys, weights, bound) if fails % 2 == 0 else cost.copy()
+        score = addition_gain(gram, keys, weights, bound) if fails % 2 == 0 else cost.copy()
         score[keys + sorted(tabu)] = -1.0
         if allowed is not None:
             score[~allowed] = -1.0
@@ -77,7 +77,7 @@ def refine(gram: np.ndarray, keys: list[int], weights: np.ndarray, cost: np.ndar
     return keys, weights, cost
 
 
-def _addition_gain(gram: np.ndarray, keys, weights: np.ndarray, bound: float) -> np.ndarray:
+def addition_gain(gram: np.ndarray, keys, weights: np.ndarray, bound: float) -> np.ndarray:
     """First-order gain in ``E_u`` of adding each row as a key, ``(n_frames,)``.
 
     With the other weights fixed, the best weight of a new key ``c`` in frame ``f`` is
@@ -91,14 +91,14 @@ def _addition_gain(gram: np.ndarray, keys, weights: np.ndarray, bound: float) ->
     if not np.isfinite(bound):  # a = -g / H_cc: the gain is g² / H_cc
         return np.einsum("fc,fc->c", grad, grad) / diag
     gain = np.empty(len(diag))
-    for cols in _column_blocks(grad.shape[1]):  # the step a and the gain by blocks of columns
+    for cols in column_blocks(grad.shape[1]):  # the step a and the gain by blocks of columns
         g, d = grad[:, cols], diag[cols]
         step = np.minimum(g / -d, bound)
         gain[cols] = np.einsum("fc,fc->c", step, -2 * g - step * d)
     return gain
 
 
-def _column_blocks(n: int, size: int = _BLOCK) -> list[slice]:
+def column_blocks(n: int, size: int = _BLOCK) -> list[slice]:
     """Slices of at most ``size`` columns covering ``0 … n − 1``."""
     return [slice(start, min(start + size, n)) for start in range(0, n, size)]
 
@@ -112,7 +112,7 @@ def _best_exchange(gram, keys, weights, new, bound, n_trials: int = 4, sweeps: i
     Returns ``(keys, weights, per-frame costs)`` of the best trial.
     """
     grown = [*keys, new]
-    w, _ = _fit_added(gram, keys, weights, new, bound, sweeps)
+    w, _ = fit_added(gram, keys, weights, new, bound, sweeps)
     importance = np.diag(gram)[keys] * (w[:, :-1] ** 2).sum(axis=0)
     drops = np.argsort(importance, kind="stable")[:n_trials]
     sets = [[k for i, k in enumerate(grown) if i != d] for d in drops]

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..exceptions import MissingDependencyError
-from .camera import AMBIENT, BACKGROUND, BASE_COLOR, LIGHT, Camera, NormalEstimator
+from ..mesh import NormalEstimator
+from .camera import AMBIENT, BACKGROUND, BASE_COLOR, LIGHT, Camera
 
 __all__ = ["GLRenderer"]
 

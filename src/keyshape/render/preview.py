@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..containers import KeyShapes, Poses, Rig, Track, Weights
+from ..containers import KeyShapes, Rig, Track, Weights
 from ..exceptions import InputError
 from ..io.atomic import atomic_path
 from ..schemes import mediapipe_scheme
@@ -26,24 +26,7 @@ from .camera import frame_points
 from .draw import OTHER_COLOUR, WeightStrip, caption, draw_landmarks, landmark_colours, region_palette, resize_to_height
 from .encode import VideoWriter
 
-__all__ = ["render_preview", "head_rotations", "rotations_from_quaternions"]
-
-_IMAGE_TO_GLTF = np.diag([1.0, -1.0, -1.0])  # image axes (x right, y down, z away) <-> glTF
-
-
-def head_rotations(poses: Poses) -> np.ndarray:
-    """Head rotations ``(n_frames, 3, 3)`` in glTF axes (``C R C``), as on the ``.glb`` head node.
-
-    2D rotations become rotations about the view axis; NaN frames stay NaN.
-    """
-    rot = np.asarray(poses.rotations, dtype=float)
-    if rot.shape[1] == 2:
-        full = np.tile(np.eye(3), (len(rot), 1, 1))
-        full[:, :2, :2] = rot
-        full[~np.isfinite(rot).all(axis=(1, 2))] = np.nan
-        rot = full
-    return _IMAGE_TO_GLTF @ rot @ _IMAGE_TO_GLTF
-
+__all__ = ["render_preview", "rotations_from_quaternions"]
 
 def rotations_from_quaternions(quaternions: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(n_frames, 3, 3)`` of unit quaternions ``(n_frames, 4)`` (x, y, z, w)."""
@@ -76,7 +59,7 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     rig_weights : (n_frames, n_targets) float, optional, keyword-only
         What drives the rig; default ``weights.values``, whose names must then be the rig's targets.
     rotations : (n_frames, 3, 3) float, optional, keyword-only
-        Head rotations in glTF axes (see :func:`head_rotations`); NaN frames hold the last one.
+        Head rotations in glTF axes (see :func:`keyshape.schemes.head_rotations`); NaN frames hold the last one.
     height : int, optional, keyword-only
         Height of the picture row (the character panel is square); default the source video's
         height, kept between 360 and 720 pixels.

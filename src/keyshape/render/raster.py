@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import BACKGROUND, Camera, face_normals, lambert
+from ..mesh import face_normals
+from .camera import BACKGROUND, Camera, lambert
 
 __all__ = ["NumpyRenderer", "rasterize"]
 

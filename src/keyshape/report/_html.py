@@ -18,7 +18,7 @@ from ..io.atomic import atomic_path
 __all__ = ["write_report"]
 
 
-def _data_uri(path: Path, mime: str) -> str:
+def data_uri(path: Path, mime: str) -> str:
     return f"data:{mime};base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
 
 
@@ -66,7 +66,7 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
                    "Bottom: the current key-shape weights.</p>")]
     for caption_text, png in images.items():
         parts += [f"<h2>{html.escape(caption_text)}</h2>",
-                  f'<img alt="{html.escape(caption_text)}" src="{_data_uri(png, "image/png")}">']
+                  f'<img alt="{html.escape(caption_text)}" src="{data_uri(png, "image/png")}">']
     parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"]), _definitions(numbers)]
     data = json.dumps(numbers).replace("</", "<\\/")
     document = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"

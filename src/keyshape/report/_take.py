@@ -24,7 +24,7 @@ from ..containers import KeyShapes, Track, Weights
 from ..exceptions import InputError
 from ..schemes import stable_points
 from ._fit import HULL_TOLERANCE, FitQuality, face_scale, fit_quality, gap_runs, take_numbers
-from ._html import _data_uri, write_report
+from ._html import data_uri, write_report
 
 __all__ = ["FitQuality", "fit_quality", "face_scale", "gap_runs", "take_numbers", "write_report",
            "write_take_extras", "write_take_preview", "TakeExtras", "HULL_TOLERANCE"]
@@ -88,7 +88,7 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
 def _video_source(movie: Path | None, embed: bool) -> str | None:
     if movie is None:
         return None
-    return _data_uri(movie, "video/mp4") if embed else movie.name
+    return data_uri(movie, "video/mp4") if embed else movie.name
 
 
 _CAPTIONS = {"keyshapes": "Key shapes: the sculpt list", "weights": "Weights over time and fit error",

@@ -55,13 +55,12 @@ from scipy import sparse
 from ..alignment import procrustes
 from ..containers import KeyShapes
 from ..exceptions import DegenerateFrameWarning, InputError, RigError
-from ..mesh import weld_vertices
-from ..schemes import resolve_regions, stable_points
+from ..mesh import NormalEstimator, weld_vertices
+from ..schemes import as_xyz, points_to_gltf, resolve_regions, stable_points
 from ._correspond import Correspondence
 
 __all__ = ["LandmarkMotion", "feature_groups", "landmark_motion", "spread", "transfer_expressions"]
 
-_IMAGE_TO_GLTF = np.array([1.0, -1.0, -1.0])
 _SCALE_LIMITS = (1 / 3, 3.0)
 
 
@@ -133,12 +132,12 @@ def landmark_motion(keys: KeyShapes, correspondence: Correspondence, vertices: n
         raise RigError(f"expression transfer needs at least 3 corresponded landmarks; got {correspondence.n_corr}")
     points = correspondence.points(vertices)
     index = correspondence.landmarks
-    source = keys.neutral[index] * _IMAGE_TO_GLTF[: keys.n_dims]
-    deltas = keys.deltas[:, index] * _IMAGE_TO_GLTF[: keys.n_dims]
+    source = points_to_gltf(keys.neutral[index])
+    deltas = points_to_gltf(keys.deltas[:, index])
     scale, rotation, placed = _similarity(source, points)
     # k: key, c: point, i/j: dimension
     moved = scale * np.einsum("ij,kcj->kci", rotation, deltas)
-    moved = _as_3d(moved)
+    moved = as_xyz(moved)
     features = {}
     if rescale:
         moved, features = _rescale_features(moved, placed, points, index, keys.n_landmarks)
@@ -153,8 +152,6 @@ def _facing(vertices, faces, correspondence: Correspondence, toward_camera: np.n
     """(n_corr,) confidence from ``|n · v|``: 1 facing the camera (≥ 0.7), down to 0.1 edge-on (≤ 0.25)."""
     if faces is None:
         return np.ones(correspondence.n_corr)
-    from ..render.camera import NormalEstimator
-
     normals = correspondence.points(NormalEstimator(faces, len(vertices))(vertices))
     length = np.linalg.norm(normals, axis=1)
     cosine = np.abs(normals @ toward_camera) / np.where(length > 0, length, 1.0)
@@ -179,12 +176,6 @@ def _similarity(source: np.ndarray, target: np.ndarray):
     if d == 2:
         placed = np.concatenate([placed, target[:, 2:3]], axis=1)
     return scale, rotation, placed
-
-
-def _as_3d(deltas: np.ndarray) -> np.ndarray:
-    if deltas.shape[-1] == 3:
-        return deltas
-    return np.concatenate([deltas, np.zeros(deltas.shape[:-1] + (1,))], axis=-1)
 
 
 def _constrained_landmarks(keys: KeyShapes) -> np.ndarray:
