@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ..containers import KeyShapes, Track, Weights
-from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..defaults import DEFAULT_METHOD, DEFAULT_N_KEYS, DEFAULT_REGIONS, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, MAX_ERROR
 from ..exceptions import NotFittedError
 from ._pipeline import discover_keys, solve_take
 
@@ -55,9 +55,9 @@ class KeyShapeModel:
     ((80, 8), 8)
     """
 
-    def __init__(self, n_keys: int | str = 8, *, method: str = "spa", regions="upper-lower",
+    def __init__(self, n_keys: int | str = DEFAULT_N_KEYS, *, method: str = DEFAULT_METHOD, regions=DEFAULT_REGIONS,
                  neutral: int | None = None, stable=None, upper: float | None = DEFAULT_UPPER,
-                 smoothness: float = DEFAULT_SMOOTHNESS, convex: bool = False, max_error: float = 2.0):
+                 smoothness: float = DEFAULT_SMOOTHNESS, convex: bool = False, max_error: float = MAX_ERROR):
         self.n_keys = n_keys
         self.method = method
         self.regions = regions

@@ -17,7 +17,14 @@ from ..capture.filters import GapReport, gap_report, hold_neutral
 from ..capture.gaze import Gaze, estimate_gaze
 from ..containers import KeyShapes, Poses, Track, Weights
 from ..decompose import solve_weights
-from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..defaults import (
+    DEFAULT_METHOD,
+    DEFAULT_N_KEYS,
+    DEFAULT_REGIONS,
+    DEFAULT_SMOOTHNESS,
+    DEFAULT_UPPER,
+    MAX_ERROR,
+)
 from ..exceptions import InputError
 from ..keyshapes import check_neutral_frame, find_keyshapes
 from ..metrics import face_scale, reconstruction_error
@@ -32,10 +39,10 @@ def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray) -> int
     return check_neutral_frame(track, neutral, name="--neutral")
 
 
-def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = "upper-lower",
-                  n_keys: int | str = 8, method: str = "spa", neutral: int | None = None,
+def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = DEFAULT_REGIONS,
+                  n_keys: int | str = DEFAULT_N_KEYS, method: str = DEFAULT_METHOD, neutral: int | None = None,
                   take: str | Sequence[str] = "", stable: np.ndarray | None = None,
-                  upper: float | None = DEFAULT_UPPER, max_error: float = 2.0) -> KeyShapes:
+                  upper: float | None = DEFAULT_UPPER, max_error: float = MAX_ERROR) -> KeyShapes:
     """Key shapes of one take, or one key set across several takes of the same actor.
 
     Pick the neutral frame (of the first take), align every frame of every take onto it,

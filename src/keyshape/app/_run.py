@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..containers import KeyShapes, Rig, Track
-from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..defaults import DEFAULT_METHOD, DEFAULT_N_KEYS, DEFAULT_REGIONS, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, MAX_ERROR
 from ..exceptions import InputError
 
 __all__ = ["RunOptions", "TakeSummary", "run_take", "OUTPUT_FILES"]
@@ -31,10 +31,10 @@ class RunOptions:
     rig: Path | None = None
     mapping: Path | None = None
     keys: Path | None = None  # reuse this key set instead of discovering one
-    regions: str | Path = "upper-lower"
-    n_keys: int | str = 8  # or "auto"
-    max_error: float = 2.0  # % inter-ocular distance, for n_keys="auto"
-    method: str = "spa"
+    regions: str | Path = DEFAULT_REGIONS
+    n_keys: int | str = DEFAULT_N_KEYS  # or "auto"
+    max_error: float = MAX_ERROR  # % inter-ocular distance, for n_keys="auto"
+    method: str = DEFAULT_METHOD
     neutral: int | None = None
     capture: dict = field(default_factory=dict)  # start, end, fps, face, one_euro
     smoothness: float = DEFAULT_SMOOTHNESS

@@ -6,7 +6,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..defaults import (
+    DEFAULT_METHOD,
+    DEFAULT_N_KEYS,
+    DEFAULT_REGIONS,
+    DEFAULT_SMOOTHNESS,
+    DEFAULT_UPPER,
+    MAX_ERROR,
+    MAX_KEYS,
+)
 from ..exceptions import InputError
 from ._argtypes import bound, non_negative, positive, whole
 
@@ -20,17 +28,17 @@ def _count(text: str) -> int | str:
 
 
 def add_key_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--method", choices=("spa", "hull", "spread"), default="spa",
+    p.add_argument("--method", choices=("spa", "hull", "spread"), default=DEFAULT_METHOD,
                    help="key-shape selection: spa = successive projection on the deltas from neutral "
                         "(default); hull = convex hull of the leading principal components (paper); "
                         "spread = extreme projections on the principal components (paper)")
-    p.add_argument("--count", type=_count, default=8, metavar="K",
-                   help="key shapes per region (default 8), or 'auto': the fewest per region whose "
-                        "RMS error is below --max-error (at most 24)")
-    p.add_argument("--max-error", type=positive, default=2.0, metavar="PCT",
-                   help="target of --count auto: RMS reconstruction error in %% of the "
-                        "inter-ocular distance (default 2)")
-    p.add_argument("--regions", default="upper-lower", metavar="SCHEME",
+    p.add_argument("--count", type=_count, default=DEFAULT_N_KEYS, metavar="K",
+                   help=f"key shapes per region (default {DEFAULT_N_KEYS}), or 'auto': the fewest per region whose "
+                        f"RMS error is below --max-error (at most {MAX_KEYS})")
+    p.add_argument("--max-error", type=positive, default=MAX_ERROR, metavar="PCT",
+                   help=f"target of --count auto: RMS reconstruction error in %% of the "
+                        f"inter-ocular distance (default {MAX_ERROR:g})")
+    p.add_argument("--regions", default=DEFAULT_REGIONS, metavar="SCHEME",
                    help="upper-lower (brows+eyes / mouth+jaw, default), whole, eyes "
                         "(brows / left eye / right eye / mouth), or a REGIONS.json mapping region "
                         "names to landmark indices")

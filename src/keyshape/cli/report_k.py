@@ -27,12 +27,11 @@ SHOWN_KS = (1, 2, 4, 8, 12, 16, 24, 30)
 
 
 def add_arguments(p) -> None:
-    from ..defaults import DEFAULT_UPPER
-    from ..keyshapes import MAX_ERROR
+    from ..defaults import DEFAULT_REGIONS, DEFAULT_UPPER, MAX_ERROR
 
     p.add_argument("track", type=Path, help="track file (.npz with points and fps, or a landmark CSV)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="DIR")
-    p.add_argument("--regions", default="upper-lower", metavar="SCHEME",
+    p.add_argument("--regions", default=DEFAULT_REGIONS, metavar="SCHEME",
                    help="upper-lower (default), whole, eyes, or a REGIONS.json")
     p.add_argument("--max-k", type=whole(1, 200), default=30, metavar="K",
                    help="largest number of key shapes per region (default 30)")
@@ -79,7 +78,7 @@ def run(args) -> None:
 
 def _auto_k(curve, max_error: float) -> dict[str, tuple[int, float]]:
     """region -> (K, error): spa's smallest K below ``max_error`` (what ``--count auto`` picks)."""
-    from ..keyshapes import MAX_KEYS
+    from ..defaults import MAX_KEYS
 
     out = {}
     for region, errors in curve.errors["spa"].items():

@@ -65,7 +65,7 @@ import numpy as np
 
 from ..containers import KeyShapes, Track
 from ..decompose import check_upper
-from ..defaults import DEFAULT_UPPER
+from ..defaults import DEFAULT_METHOD, DEFAULT_N_KEYS, DEFAULT_UPPER, MAX_ERROR, MAX_KEYS
 from ..exceptions import InputError
 from ..metrics import face_scale
 from . import _select
@@ -75,8 +75,6 @@ __all__ = ["MAX_CANDIDATES", "MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "cho
 
 Method = Literal["spa", "spread", "hull"]
 METHODS: tuple[str, ...] = ("spa", "spread", "hull")
-MAX_ERROR = 2.0  # % of the inter-ocular distance: the default target of n_keys="auto"
-MAX_KEYS = 24  # default cap of n_keys="auto" per region: a sculpt list an artist can still make
 MAX_CANDIDATES = 2048  # more candidate frames: keys are searched among this many (see the module notes)
 
 
@@ -95,8 +93,8 @@ def find_keyshapes(
     aligned: Track,
     *,
     regions: dict[str, np.ndarray],
-    n_keys: int | dict[str, int] | Literal["auto"] = 8,
-    method: Method = "spa",
+    n_keys: int | dict[str, int] | Literal["auto"] = DEFAULT_N_KEYS,
+    method: Method = DEFAULT_METHOD,
     neutral_frame: int,
     stable: np.ndarray | None = None,
     upper: float | None = DEFAULT_UPPER,
