@@ -208,7 +208,7 @@ def test_robot_driven_through_a_three_target_mapping(key_weights, head, tmp_path
     _clean(outs[0])
     document = pygltflib.GLTF2().load(str(outs[0]))
     assert len(document.animations) == 15 and len(document.skins) == 4  # the robot, kept whole
-    (rotation,) = [c for c in document.animations[-1].channels if c.target.path == "rotation"]
+    (rotation,) = [c for c in document.animations[0].channels if c.target.path == "rotation"]  # keyshape's, first
     assert document.nodes[rotation.target.node].name == "Head"
     back = read_glb_animation(outs[0])
     assert back.names == ("Angry", "Surprised", "Sad")

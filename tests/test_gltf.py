@@ -350,10 +350,10 @@ def test_robot_keeps_everything_and_gains_the_performance(tmp_path):
     out = animate_gltf(ROBOT, weights, tmp_path / "robot.glb", poses=poses)
     _clean(out)
     document = pygltflib.GLTF2().load(str(out))
-    assert [a.name for a in document.animations] == [a.name for a in original.animations] + ["keyshape"]
+    assert [a.name for a in document.animations] == ["keyshape"] + [a.name for a in original.animations]
     assert len(document.skins) == len(original.skins) and len(document.materials) == len(original.materials)
     assert len(document.meshes) == len(original.meshes) == 19
-    performance = document.animations[-1]
+    performance = document.animations[0]  # first: what viewers play by default
     weight_nodes = [document.nodes[c.target.node].name for c in performance.channels if c.target.path == "weights"]
     assert weight_nodes == ["Head_2", "Head_3", "Head_4"]  # the three head primitives
     back = read_glb_animation(out)

@@ -1,10 +1,11 @@
 """A character's nodes in a glTF document: finding its head and eyes, and turning them.
 
 :func:`find_head` and :func:`find_eyes` pick the nodes to turn, by name and place in the
-node tree (skin joints first); :func:`local_matrix` and :func:`world_rotation` give rest
-transforms; :func:`head_local_rotations` turns a world-frame rotation per frame into the
-node's local rotation track. Private to :mod:`keyshape.io.gltf` (and the USD writer, which
-finds its head joint by the same names).
+node tree (skin joints first); :func:`local_matrix`, :func:`world_matrix` and
+:func:`world_rotation` give rest transforms (the reader places meshes in the world with them);
+:func:`head_local_rotations` turns a world-frame rotation per frame into the node's local
+rotation track. Private to :mod:`keyshape.io` (the glTF reader and writers, and the
+USD writer, which finds its head joint by the same names).
 
 Rotations: a head rotation ``D`` is given in the file's world frame (glTF: +Y up, the
 character facing +Z). On a node whose parent has the rest world rotation ``P`` and whose own
@@ -143,14 +144,21 @@ def local_matrix(node: pygltflib.Node) -> np.ndarray:
     return out
 
 
-def world_rotation(document: pygltflib.GLTF2, node: int | None) -> np.ndarray:
-    """(3, 3) float: the rotation part of a node's rest world transform (identity for None)."""
-    parent_of = parents(document)
+def world_matrix(document: pygltflib.GLTF2, node: int | None, parent_of: dict[int, int] | None = None
+                 ) -> np.ndarray:
+    """(4, 4) float: a node's rest world transform, its ancestors' composed from the root down
+    (identity for None). ``parent_of`` (from :func:`parents`) saves recomputing it."""
+    parent_of = parents(document) if parent_of is None else parent_of
     matrix = np.eye(4)
     chain = [] if node is None else _ancestry(node, parent_of)
     for index in reversed(chain):
         matrix = matrix @ local_matrix(document.nodes[index])
-    return rotation_part(matrix[:3, :3])
+    return matrix
+
+
+def world_rotation(document: pygltflib.GLTF2, node: int | None) -> np.ndarray:
+    """(3, 3) float: the rotation part of a node's rest world transform (identity for None)."""
+    return rotation_part(world_matrix(document, node)[:3, :3])
 
 
 def rotation_part(linear: np.ndarray) -> np.ndarray:

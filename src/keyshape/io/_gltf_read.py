@@ -5,6 +5,12 @@ A glTF rig is every primitive of the meshes that carry morph targets, concatenat
 buffer split by material) share one block of rig vertices. :class:`Part` records where each
 primitive's vertices sit in the rig, so edited targets can be written back into the file.
 
+Geometry is read in **world space**: each mesh is placed by the rest world transform of the
+first node (lowest index) that shows it (:func:`mesh_matrices`), so a head exported under a
+Z-up, centimetre or quantized hierarchy reads as the viewer shows it. Positions and target
+deltas may be quantized (``KHR_mesh_quantization``: integer components, normalized or not);
+:func:`read_accessor` decodes them and the node transform carries the dequantization.
+
 References
 ----------
 The Khronos Group, *glTF 2.0 Specification*, sections 3.6 (accessors, sparse accessors),
@@ -24,6 +30,7 @@ import pygltflib
 
 from ..containers import Rig
 from ..exceptions import InputError, RigError
+from ._gltf_nodes import parents, world_matrix
 
 COMPONENT_DTYPES = {
     pygltflib.BYTE: np.int8,
@@ -193,7 +200,12 @@ def read_uri(uri: str, path: Path) -> bytes:
 
 
 def read_accessor(document: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarray:
-    """Accessor ``index`` as a ``(count, n_components)`` float array (strides, sparse, normalized)."""
+    """Accessor ``index`` as a ``(count, n_components)`` float array (strides, sparse, normalized).
+
+    Integer components (``BYTE``, ``UNSIGNED_BYTE``, ``SHORT``, ``UNSIGNED_SHORT``, as
+    ``KHR_mesh_quantization`` stores positions and morph targets) are decoded as the spec says:
+    normalized ones to ``value / max`` (signed clamped at -1), the others to their integer value.
+    """
     accessor = document.accessors[index]
     dtype = np.dtype(COMPONENT_DTYPES[accessor.componentType]).newbyteorder("<")
     width = N_COMPONENTS[accessor.type]
@@ -222,7 +234,8 @@ def _read_view(document, buffers, view_index, offset, dtype, count, width) -> np
 
 
 def _dequantize(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """glTF normalized integers to floats (spec 3.11, 'Animations', and 3.6.2.3)."""
+    """glTF normalized integers to floats (spec 3.6.2.3, 'Animations' 3.11; KHR_mesh_quantization):
+    ``value / max``, at least -1 for signed types."""
     if dtype.kind == "f":
         return values.astype(float)
     scale = float(np.iinfo(dtype).max)
@@ -275,22 +288,61 @@ def read_parts(document, buffers, meshes, path) -> tuple[Rig, list[Part]]:
     """The primitives of ``meshes`` (indices) as one rig, and where each primitive sits in it.
 
     Target names are the union over the meshes (in order of first appearance); a primitive
-    lacking a name contributes zero deltas for it. Vertices are in mesh-local coordinates.
+    lacking a name contributes zero deltas for it. Vertices are in world space: each mesh's
+    positions go through its :func:`mesh_matrices` entry ``M`` (``v' = L v + t``), its target
+    deltas through the linear part ``L`` alone, and where ``det L < 0`` (a mirroring node)
+    triangles are rewound so they still face outwards. Primitives share a block of vertices
+    when they share their accessors *and* their transform.
     """
     _check_decodable(document, path)
+    matrices = mesh_matrices(document)
     blocks, parts, faces, offset = {}, [], [], 0
     for m in meshes:
         mesh = document.meshes[m]
         names = target_names(mesh)
+        matrix = matrices.get(m)
         for p, primitive in enumerate(mesh.primitives):
-            key = _block_key(primitive)
+            key = (_block_key(primitive), None if matrix is None else matrix.tobytes())
             if key not in blocks:
-                blocks[key] = (offset, _read_block(document, buffers, primitive, names, path))
+                block = _read_block(document, buffers, primitive, names, path)
+                blocks[key] = (offset, block if matrix is None else _to_world(block, matrix))
                 offset += len(blocks[key][1][0])
             start, (vertices, _) = blocks[key]
             parts.append(Part(m, p, start, len(vertices)))
-            faces.append(_read_faces(document, buffers, primitive, len(vertices), path) + start)
+            tris = _read_faces(document, buffers, primitive, len(vertices), path)
+            if matrix is not None and np.linalg.det(matrix[:3, :3]) < 0:
+                tris = tris[:, [0, 2, 1]]
+            faces.append(tris + start)
     return _assemble([b for _, b in blocks.values()], faces), parts
+
+
+def mesh_matrices(document) -> dict[int, np.ndarray]:
+    """``{mesh: (4, 4) float}``: where each mesh sits in the world, for the meshes that move.
+
+    A mesh is placed by the first node (lowest index) that shows it: that node's rest world
+    transform, composed from its scene root down (each node's ``matrix`` or translation,
+    rotation, scale). Meshes whose node transform is exactly the identity, that no node
+    shows, or whose first node is **skinned** are left out (read as stored): the spec ignores a
+    skinned mesh's node transform, and its vertices are in the skin's bind space, which
+    exporters make the world at the bind pose (the joints' inverse bind matrices undo their
+    bind-pose world transforms); skinning is not applied.
+    """
+    parent_of = parents(document)
+    out = {}
+    for index, node in enumerate(document.nodes):
+        if node.mesh is None or node.mesh in out:
+            continue
+        matrix = None if node.skin is not None else world_matrix(document, index, parent_of)
+        out[node.mesh] = matrix
+    identity = np.eye(4)
+    return {m: matrix for m, matrix in out.items() if matrix is not None and not np.array_equal(matrix, identity)}
+
+
+def _to_world(block, matrix: np.ndarray):
+    """A block's vertices ``(n, 3)`` through ``matrix (4, 4)``, its deltas through its linear part."""
+    vertices, deltas = block
+    linear = matrix[:3, :3]
+    return vertices @ linear.T + matrix[:3, 3], {name: d @ linear.T for name, d in deltas.items()}
 
 
 def _check_decodable(document, path) -> None:
@@ -354,9 +406,14 @@ def read_rig(path) -> Rig:
     Every primitive of every mesh that has morph targets is kept and their vertices are
     concatenated, faces offset (primitives sharing a vertex buffer share their vertices).
     Target names come from each mesh's ``extras.targetNames``; a mesh lacking one of the union
-    of names contributes zero deltas for it. Vertices are taken **as stored**, in mesh-local
-    coordinates (glTF: metres, +Y up): node transforms and skinning are not applied, since
-    morph targets act before both. Meshes without morph targets (body, props) are ignored.
+    of names contributes zero deltas for it. Vertices are in **world space** (glTF: metres,
+    +Y up), as a viewer shows the file at rest: each mesh's positions go through the rest world
+    transform of the first node that shows it (its ancestors' and its own translation,
+    rotation, scale or ``matrix``), its target deltas through that transform's linear part
+    (morph targets act before the node transform, so a delta is a direction). Skinned meshes
+    are read as stored (their bind space; the spec ignores their node transform and skinning is
+    not applied). Quantized geometry (``KHR_mesh_quantization``) is decoded, the node transform
+    supplying its scale. Meshes without morph targets (body, props) are ignored.
 
     Parameters
     ----------

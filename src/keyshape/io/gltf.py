@@ -8,15 +8,17 @@ Three writers, all producing one self-contained binary ``.glb``, atomically:
   one animation: a ``weights`` channel sampled at ``frame / fps`` with LINEAR interpolation,
   plus an optional ``rotation`` channel for the head.
 * :func:`animate_gltf` keeps an artist's **original** file (skinning, materials, textures,
-  other meshes and animations) and adds one animation ``"keyshape"``: a ``weights`` channel
+  other meshes and animations) and adds one animation ``"keyshape"``, placed first (the one
+  viewers play by default; the file's own animations follow): a ``weights`` channel
   on every node whose mesh carries the targets, and the head rotation on the character's
   head node (a joint or node named like ``head`` above the face meshes).
 * :func:`write_gltf_targets` puts new morph targets (the sculpt kit's, one per key shape)
   on chosen meshes of an original file.
 
-Coordinates follow glTF: metres, +Y up, the character facing +Z. Image-space rotations
-(x right, y down, z away from the camera) are converted with ``C = diag(1, -1, -1)``:
-``R_gltf = C R C``.
+Coordinates follow glTF: metres, +Y up, the character facing +Z. Rigs are read in world
+space (each mesh through its node's rest world transform; see :func:`read_rig`), and new
+targets are written back in each mesh's own space. Image-space rotations (x right, y down,
+z away from the camera) are converted with ``C = diag(1, -1, -1)``: ``R_gltf = C R C``.
 
 References
 ----------
@@ -59,6 +61,7 @@ from ._gltf_read import (
     GlbAnimation,
     Part,
     load_document,
+    mesh_matrices,
     morph_meshes,
     read_glb_animation,
     read_parts,
@@ -202,7 +205,8 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     path : str or Path
         Output ``.glb``: the original scene with every buffer and image packed in, skinned
         meshes moved to the scene root (the spec ignores their parents' transforms anyway),
-        earlier ``keyshape`` animations replaced, and one animation ``"keyshape"`` added.
+        earlier ``keyshape`` animations replaced, and one animation ``"keyshape"`` added as
+        ``animations[0]`` (what viewers play by default), the file's own animations after it.
     poses : Poses, optional
         Head poses (image convention, as :func:`write_glb`), written as the ``rotation`` of
         the head node: ``Pᵀ D P R`` for a world-frame head rotation ``D``, the head's parent
@@ -243,7 +247,7 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
         animation, nodes = _performance(document, blob, meshes, weights, source)
         _turn_head(document, blob, animation, nodes, poses, head, source)
         _turn_eyes(document, blob, animation, nodes, eyes, (head, eye_nodes), source)
-        document.animations.append(animation)
+        document.animations.insert(0, animation)  # viewers (three.js, ...) play animations[0]
     blob.finish()
     edit.prune(document)
     return _save(path, document)
@@ -314,7 +318,9 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
     Returns
     -------
     rig : Rig
-        Neutral vertices (mesh-local, as stored) and the meshes' existing targets, if any.
+        Neutral vertices ``(n_vertices, 3)`` and the meshes' existing targets, if any, in world
+        space as :func:`read_rig` reads them (each mesh through the rest world transform of the
+        first node that shows it; skinned meshes as stored).
     parts : list of Part
     """
     document, buffers = load_document(path, editable=False)
@@ -350,7 +356,10 @@ def write_gltf_targets(source, path, rig: Rig, *, meshes=None) -> Path:
         Output ``.glb`` (atomic).
     rig : Rig
         Vertices laid out as :func:`read_meshes` returns them for ``meshes`` (same count);
-        its ``deltas`` become the targets, named ``rig.names``, at weight 0.
+        its ``deltas (n_targets, n_vertices, 3)``, in world space as :func:`read_meshes` reads
+        them, become the targets, named ``rig.names``, at weight 0: each mesh's are taken back
+        to its own space (the inverse of its node's linear part) and stored as float32, beside
+        positions that may stay quantized (``KHR_mesh_quantization`` is kept).
     meshes : sequence of int or str, optional, keyword-only
         As :func:`read_meshes`.
 
@@ -361,7 +370,8 @@ def write_gltf_targets(source, path, rig: Rig, *, meshes=None) -> Path:
     Raises
     ------
     RigError
-        If the rig's vertex count differs from the chosen meshes', or it has no targets.
+        If the rig's vertex count differs from the chosen meshes', it has no targets, or a
+        mesh's node transform cannot be inverted (a zero scale).
     """
     path, source = Path(path), Path(source)
     _check_suffix(path)
@@ -369,8 +379,9 @@ def write_gltf_targets(source, path, rig: Rig, *, meshes=None) -> Path:
     chosen = _choose_meshes(document, meshes, source)
     _, parts = read_parts(document, buffers, chosen, source)
     _check_layout(rig, parts, source)
+    to_local = _to_local(document, parts, source)
     blob = edit.pack(document, buffers, source)
-    _set_targets(document, blob, rig, parts)
+    _set_targets(document, blob, rig, parts, to_local)
     edit.drop_weight_channels(document, edit.morph_nodes(document, chosen))
     edit.root_skinned_meshes(document)
     blob.finish()
@@ -387,11 +398,32 @@ def _check_layout(rig: Rig, parts: list[Part], source) -> None:
         raise RigError("the rig has no targets to write")
 
 
-def _set_targets(document, blob: edit.Blob, rig: Rig, parts: list[Part]) -> None:
+def _to_local(document, parts: list[Part], source) -> dict[int, np.ndarray]:
+    """``{mesh: (3, 3) float}``: the inverse linear part of each moved mesh's world transform.
+
+    Row-vector world deltas ``d (n, 3)`` go back to the mesh's space as ``d @ inverse.T``.
+    """
+    matrices = mesh_matrices(document)
+    out = {}
+    for mesh in dict.fromkeys(p.mesh for p in parts):
+        if mesh not in matrices:
+            continue
+        linear = matrices[mesh][:3, :3]
+        if not np.linalg.cond(linear) < 1e12:  # also catches NaN and infinite
+            raise RigError(f"{str(source)!r}: the node showing mesh {mesh} has a degenerate transform "
+                           f"(a zero scale); new targets cannot be placed in it")
+        out[mesh] = np.linalg.inv(linear)
+    return out
+
+
+def _set_targets(document, blob: edit.Blob, rig: Rig, parts: list[Part], to_local: dict[int, np.ndarray]
+                 ) -> None:
     blocks: dict[int, list[dict]] = {}
     for part in parts:
         if part.start not in blocks:
             block = rig.deltas[:, part.start:part.start + part.count]
+            if part.mesh in to_local:  # parts sharing a block share its transform (read_parts)
+                block = block @ to_local[part.mesh].T
             blocks[part.start] = [{"POSITION": blob.add_target(delta)} for delta in block]
         primitive = document.meshes[part.mesh].primitives[part.primitive]
         primitive.targets = [dict(t) for t in blocks[part.start]]

@@ -6,7 +6,7 @@ A rig is one of
   target; the file stem is the target name; quads and n-gons are fan-triangulated);
 * a ``.glb``/``.gltf`` whose morph targets are named in ``mesh.extras.targetNames``
   (:func:`keyshape.io.gltf.read_rig`: several meshes and primitives sharing the names,
-  skinned or not);
+  skinned or not, placed in the world by their nodes);
 * a USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``) with UsdSkel blend shapes
   (:func:`keyshape.io.usd.read_rig`, needs ``usd-core``).
 
@@ -50,7 +50,8 @@ def load_rig(path, *, unit: float = 1.0) -> Rig:
         A folder holding ``neutral.obj`` (or exactly one OBJ whose name contains
         "neutral") and ``<target>.obj`` files with one topology (targets sorted by name);
         a single ``.obj`` (a neutral with no targets, e.g. to sculpt on); a ``.glb``/``.gltf``
-        with named morph targets (vertices as stored, node transforms not applied); or a USD
+        with named morph targets (in world space: node transforms applied, skinned meshes as stored;
+        quantized geometry decoded); or a USD
         file with UsdSkel blend shapes.
     unit : float, keyword-only
         Metres per OBJ unit (0.01 for centimetres). glTF and USD files state their units.
