@@ -132,6 +132,22 @@ def test_gl_and_numpy_renderers_agree(fov_deg):
     assert (a[~sa] == BACKGROUND_RGB).all() or np.abs(a[~sa].astype(int) - BACKGROUND_RGB).max() <= 1
 
 
+@pytest.mark.parametrize("backend", ["gl", "numpy"])
+def test_vertex_colours_paint_the_mesh(backend):
+    vertices, faces = uv_sphere()
+    camera = frame_points(vertices, margin=1.3)
+    colours = np.where(vertices[:, [0]] > 0, [[0.9, 0.1, 0.1]], [[0.1, 0.1, 0.9]])  # red right, blue left
+    with make_renderer(faces, 120, 120, n_vertices=len(vertices), backend=backend, colours=colours) as r:
+        image = r.render(vertices, camera).astype(int)
+    right, left = image[60, 80], image[60, 40]
+    assert right[0] > 2 * right[2] and left[2] > 2 * left[0]
+    with make_renderer(faces, 120, 120, n_vertices=len(vertices), backend=backend) as r:
+        clay = r.render(vertices, camera).astype(int)
+    assert abs(clay[60, 80, 0] - clay[60, 40, 0]) < 40  # without colours both sides are clay
+    with pytest.raises(InputError, match="colours must be finite with shape"):
+        make_renderer(faces, 8, 8, n_vertices=len(vertices), backend=backend, colours=colours[:5])
+
+
 def test_renderers_show_the_front_and_light_it():
     vertices, faces = uv_sphere()
     camera = frame_points(vertices, margin=1.2)

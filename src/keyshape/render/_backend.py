@@ -36,7 +36,7 @@ _warned = False
 
 
 def make_renderer(faces: np.ndarray, width: int, height: int, *, n_vertices: int | None = None,
-                  backend: Backend = "auto") -> Renderer:
+                  backend: Backend = "auto", colours: np.ndarray | None = None) -> Renderer:
     """A renderer for meshes with the triangles ``faces (n_faces, 3) int``.
 
     Parameters
@@ -46,6 +46,8 @@ def make_renderer(faces: np.ndarray, width: int, height: int, *, n_vertices: int
         Picture size in pixels.
     n_vertices : int, optional, keyword-only
         Defaults to ``faces.max() + 1``.
+    colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
+        Base colour of every vertex (default: clay everywhere).
     backend : "auto", "gl" or "numpy", keyword-only
         "auto" tries OpenGL and falls back to numpy, warning once per process
         (:class:`RenderFallbackWarning`); "gl" raises if OpenGL is unavailable.
@@ -59,16 +61,16 @@ def make_renderer(faces: np.ndarray, width: int, height: int, *, n_vertices: int
     if backend not in ("auto", "gl", "numpy"):
         raise ValueError(f"backend must be 'auto', 'gl' or 'numpy'; got {backend!r}")
     if backend == "numpy":
-        return NumpyRenderer(faces, width, height)
+        return NumpyRenderer(faces, width, height, colours=colours)
     try:
         from .gl import GLRenderer
 
-        return GLRenderer(faces, width, height, n_vertices)
+        return GLRenderer(faces, width, height, n_vertices, colours=colours)
     except Exception as exc:
         if backend == "gl":
             raise
         _warn_fallback(exc)
-        return NumpyRenderer(faces, width, height)
+        return NumpyRenderer(faces, width, height, colours=colours)
 
 
 def _warn_fallback(exc: Exception) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..exceptions import InputError
 
-__all__ = ["Camera", "frame_points", "LIGHT", "lambert"]
+__all__ = ["Camera", "frame_points", "LIGHT", "lambert", "vertex_colours"]
 
 LIGHT = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.0])  # toward the light
 AMBIENT = 0.25
@@ -127,7 +127,21 @@ def _perspective(centre, half_h, aspect, z_front, depth, fov_deg) -> np.ndarray:
     return proj @ view
 
 
-def lambert(normals: np.ndarray) -> np.ndarray:
-    """RGB in [0, 1] ``(n, 3)`` of surfaces with unit ``normals (n, 3)`` (two-sided Lambert)."""
+def lambert(normals: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
+    """RGB in [0, 1] ``(n, 3)`` of surfaces with unit ``normals (n, 3)`` (two-sided Lambert).
+
+    ``colours (n, 3)`` are their base colours (default: clay).
+    """
     diffuse = np.abs(normals @ LIGHT)
-    return BASE_COLOR * (AMBIENT + (1 - AMBIENT) * diffuse)[:, None]
+    base = BASE_COLOR if colours is None else colours
+    return base * (AMBIENT + (1 - AMBIENT) * diffuse)[:, None]
+
+
+def vertex_colours(colours, n_vertices: int) -> np.ndarray:
+    """Base colours ``(n_vertices, 3)`` float in [0, 1]: ``colours`` checked, or clay everywhere if None."""
+    if colours is None:
+        return np.tile(BASE_COLOR, (n_vertices, 1))
+    colours = np.asarray(colours, dtype=float)
+    if colours.shape != (n_vertices, 3) or not np.isfinite(colours).all():
+        raise InputError(f"colours must be finite with shape ({n_vertices}, 3); got {colours.shape}")
+    return np.clip(colours, 0.0, 1.0)

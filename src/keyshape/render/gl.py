@@ -12,7 +12,7 @@ import numpy as np
 
 from ..exceptions import MissingDependencyError
 from ..mesh import NormalEstimator
-from .camera import AMBIENT, BACKGROUND, BASE_COLOR, LIGHT, Camera
+from .camera import AMBIENT, BACKGROUND, LIGHT, Camera, vertex_colours
 
 __all__ = ["GLRenderer"]
 
@@ -21,23 +21,26 @@ _VERTEX_SHADER = """
 uniform mat4 mvp;
 in vec3 in_position;
 in vec3 in_normal;
+in vec3 in_color;
 out vec3 v_normal;
+out vec3 v_color;
 void main() {
     gl_Position = mvp * vec4(in_position, 1.0);
     v_normal = in_normal;
+    v_color = in_color;
 }
 """
 
 _FRAGMENT_SHADER = """
 #version 330
 uniform vec3 light;
-uniform vec3 base_color;
 uniform float ambient;
 in vec3 v_normal;
+in vec3 v_color;
 out vec4 f_color;
 void main() {
     float diffuse = abs(dot(normalize(v_normal), light));  // two-sided Lambert
-    f_color = vec4(base_color * (ambient + (1.0 - ambient) * diffuse), 1.0);
+    f_color = vec4(v_color * (ambient + (1.0 - ambient) * diffuse), 1.0);
 }
 """
 
@@ -61,6 +64,8 @@ class GLRenderer:
         Defaults to ``faces.max() + 1``.
     samples : int, keyword-only
         Multisample anti-aliasing samples (0 = off).
+    colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
+        Base colour per vertex (interpolated over the triangles); default: clay everywhere.
 
     Raises
     ------
@@ -73,12 +78,13 @@ class GLRenderer:
     backend = "gl"
 
     def __init__(self, faces: np.ndarray, width: int, height: int, n_vertices: int | None = None, *,
-                 samples: int = 0):
+                 samples: int = 0, colours: np.ndarray | None = None):
         moderngl = _moderngl()
         self.faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         self.width, self.height = int(width), int(height)
         n_vertices = int(self.faces.max()) + 1 if n_vertices is None else int(n_vertices)
         self._normals = NormalEstimator(self.faces, n_vertices)
+        self._colours = vertex_colours(colours, n_vertices)
         self.ctx = moderngl.create_context(standalone=True, backend="egl")
         try:
             self._setup(moderngl, n_vertices, samples)
@@ -90,11 +96,12 @@ class GLRenderer:
         ctx = self.ctx
         self.program = ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         self.program["light"].value = tuple(LIGHT)
-        self.program["base_color"].value = tuple(BASE_COLOR)
         self.program["ambient"].value = AMBIENT
         self.vbo = ctx.buffer(reserve=n_vertices * 6 * 4, dynamic=True)
+        self.cbo = ctx.buffer(self._colours.astype("f4").tobytes())
         self.ibo = ctx.buffer(self.faces.astype("u4").tobytes())
-        self.vao = ctx.vertex_array(self.program, [(self.vbo, "3f 3f", "in_position", "in_normal")],
+        self.vao = ctx.vertex_array(self.program, [(self.vbo, "3f 3f", "in_position", "in_normal"),
+                                                   (self.cbo, "3f", "in_color")],
                                     index_buffer=self.ibo, index_element_size=4)
         size = (self.width, self.height)
         self.fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, 4, samples=samples)],

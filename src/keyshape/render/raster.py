@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import face_normals
-from .camera import BACKGROUND, Camera, lambert
+from .camera import BACKGROUND, Camera, lambert, vertex_colours
 
 __all__ = ["NumpyRenderer", "rasterize"]
 
@@ -28,13 +28,19 @@ class NumpyRenderer:
     ----------
     faces : (n_faces, 3) int
     width, height : int
+    colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
+        Base colour per vertex (each triangle takes the mean of its corners'); default: clay.
     """
 
     backend = "numpy"
 
-    def __init__(self, faces: np.ndarray, width: int, height: int):
+    def __init__(self, faces: np.ndarray, width: int, height: int, *, colours: np.ndarray | None = None):
         self.faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         self.width, self.height = int(width), int(height)
+        n_vertices = int(self.faces.max()) + 1 if self.faces.size else 0
+        if colours is not None:
+            colours = vertex_colours(colours, max(n_vertices, len(colours)))[self.faces].mean(axis=1)
+        self._colours = colours  # (n_faces, 3): each triangle the mean of its corners
 
     def render(self, vertices: np.ndarray, camera: Camera) -> np.ndarray:
         """Picture ``(height, width, 3) uint8`` of the mesh at ``vertices (n_vertices, 3)``."""
@@ -42,7 +48,7 @@ class NumpyRenderer:
         face_id = rasterize(screen, self.faces, self.width, self.height, in_front=in_front)
         normals = face_normals(np.asarray(vertices, dtype=float), self.faces)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
-        colours = lambert(np.divide(normals, length, out=np.zeros_like(normals), where=length > 0))
+        colours = lambert(np.divide(normals, length, out=np.zeros_like(normals), where=length > 0), self._colours)
         palette = np.round(np.vstack([colours, BACKGROUND]) * 255).astype(np.uint8)  # -1 → background
         return palette[face_id]
 

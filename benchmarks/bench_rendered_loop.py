@@ -1,0 +1,260 @@
+"""The rendered closed loop on ICT-FaceKit: a real performance, rendered, tracked, and put back on the rig.
+
+1. **Truth.** ICT-FaceKit (57 ARKit-style shapes) is driven by a real person's timing and
+   co-activation: MediaPipe's 52 ARKit scores of the embedded clip (``WolfgangLanger_Pexels.mp4``,
+   472 frames), lightly smoothed, with the clip's head rotation (MediaPipe's head matrix).
+2. **Video.** Each frame is rendered by keyshape's own renderer (OpenGL on EGL), coloured so the
+   tracker sees a face (skin, lips, brows, lashes, irises, teeth; ICT's translucent eye overlays
+   left out), and written to an H.264 MP4.
+3. **The route under test.** ``keyshape run VIDEO --rig ICT/ --auto-targets`` (through
+   :func:`keyshape.app.run_take`): the real MediaPipe tracks the video, key shapes are found, weights
+   solved, and the key → ICT-shape mapping proposed on the rig's own render.
+4. **Scores**, as mean vertex error over the mean displacement from neutral (100 % = a frozen
+   face), on ICT's face area and on its upper (brows, eyes) and lower (nose tip down) halves:
+
+   * ``keyshape``: the run's weights through its ``map.json``;
+   * ``mediapipe``: MediaPipe's own 52 scores of the rendered video driving the same rig (the peer's
+     naive path);
+   * ``oracle (>= 0)``: the best non-negative key → shape mapping, fitted on the truth from the same
+     solved key weights (what a perfect proposal could reach);
+   * ``oracle (signed + constant)``: the same with signed gains and a constant term.
+
+    python benchmarks/bench_rendered_loop.py                          # ../shared/data/ict-facekit
+    python benchmarks/bench_rendered_loop.py --out /tmp/loop --keep   # keep the video and the run
+
+The whole loop takes about two minutes on two cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import itertools
+
+from bench_closed_loop import ARCHIVE, FACE_AREA, SHARED, extract_ict, landmark_vertices
+
+# ICT-FaceKit "light" vertex ranges (inclusive), from the ICT-FaceKit documentation, checked
+# against the mesh (each range is where its part sits)
+PARTS = {
+    "face": (0, 9408), "head": (9409, 11247), "mouth_socket": (11248, 13293), "eye_sockets": (13294, 14061),
+    "gums": (14062, 17038), "teeth": (17039, 21450), "eyeball_left": (21451, 23020),
+    "eyeball_right": (23021, 24590), "overlays": (24591, 25350), "eyelashes": (25351, 26718),
+}
+SKIN, LIPS, BROWS, LASHES = (0.80, 0.62, 0.52), (0.62, 0.30, 0.30), (0.25, 0.17, 0.12), (0.10, 0.08, 0.07)
+SCLERA, IRIS, PUPIL, TEETH, INSIDE = (0.92, 0.90, 0.86), (0.30, 0.20, 0.12), (0.03, 0.03, 0.03), \
+    (0.90, 0.88, 0.80), (0.35, 0.12, 0.12)
+
+
+def _part(name: str) -> np.ndarray:
+    lo, hi = PARTS[name]
+    return np.arange(lo, hi + 1)
+
+
+def ict_colours(vertices: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """Base colours ``(n_vertices, 3)``: skin, lips and brows (from the 68 landmarks), lashes, eyes, mouth."""
+    from matplotlib.path import Path as Polygon
+
+    colours = np.tile(SKIN, (len(vertices), 1))
+    face = _part("face")
+    xy = vertices[face, :2]
+    lm = vertices[landmarks]
+    lips = Polygon(lm[48:60, :2]).contains_points(xy, radius=0.0015)
+    colours[face[lips]] = LIPS
+    for brow in (lm[17:22, :2], lm[22:27, :2]):
+        near = np.min(np.linalg.norm(xy[:, None] - _densify(brow)[None], axis=2), axis=1) < 0.0045
+        colours[face[near & (vertices[face, 2] > lm[27, 2] - 0.03)]] = BROWS
+    for part in ("mouth_socket", "gums"):
+        colours[_part(part)] = INSIDE
+    colours[_part("teeth")] = TEETH
+    colours[_part("eyelashes")] = LASHES
+    for side in ("eyeball_left", "eyeball_right"):
+        ids = _part(side)
+        centre = vertices[ids].mean(axis=0) - np.array([0.0, 0.0, 0.004])
+        direction = vertices[ids] - centre
+        cos = direction[:, 2] / np.linalg.norm(direction, axis=1)
+        colours[ids] = SCLERA
+        colours[ids[cos > 0.86]] = IRIS
+        colours[ids[cos > 0.97]] = PUPIL
+    return colours
+
+
+def _densify(polyline: np.ndarray, n: int = 8) -> np.ndarray:
+    t = np.linspace(0, 1, n, endpoint=False)
+    pieces = [a + (b - a) * t[:, None] for a, b in itertools.pairwise(polyline)]
+    return np.vstack([*pieces, polyline[-1:]])
+
+
+def rendered_faces(faces: np.ndarray) -> np.ndarray:
+    """The triangles to draw: ICT's translucent eye overlays (lacrimal fluid, blend, occlusion) left out."""
+    lo, hi = PARTS["overlays"]
+    return faces[~((faces >= lo) & (faces <= hi)).any(axis=1)]
+
+
+def truth_from_scores(scores: np.ndarray, score_names, rig_names, *, sigma: float = 1.0) -> np.ndarray:
+    """ICT weights ``(n_frames, n_targets)`` from MediaPipe's ARKit scores ``(n_frames, 52)``, smoothed."""
+    from scipy.ndimage import gaussian_filter1d
+
+    table = arkit_to_rig(score_names, rig_names)
+    weights = np.nan_to_num(scores) @ table.T
+    return np.clip(gaussian_filter1d(weights, sigma, axis=0, mode="nearest"), 0, 1) if sigma else weights
+
+
+def arkit_to_rig(score_names, rig_names) -> np.ndarray:
+    """(n_targets, n_scores) 0/1: MediaPipe's ``xxxLeft`` drives ``xxx_L``; an unsided score drives both sides."""
+    table = np.zeros((len(rig_names), len(score_names)))
+    index = {n: i for i, n in enumerate(rig_names)}
+    for j, name in enumerate(score_names):
+        for side, suffix in (("Left", "_L"), ("Right", "_R")):
+            if name.endswith(side) and name[: -len(side)] + suffix in index:
+                table[index[name[: -len(side)] + suffix], j] = 1
+                break
+        else:
+            for target in (name, name + "_L", name + "_R"):
+                if target in index:
+                    table[index[target], j] = 1
+    return table
+
+
+def head_rotations(head_matrix: np.ndarray) -> np.ndarray:
+    """Rotations ``(n_frames, 3, 3)`` (glTF axes) of MediaPipe's head matrices, relative to their median pose."""
+    from scipy.spatial.transform import Rotation
+
+    linear = np.asarray(head_matrix, dtype=float)[:, :3, :3]
+    u, _, vt = np.linalg.svd(linear)
+    rotations = Rotation.from_matrix(u @ vt)
+    rest = Rotation.from_rotvec(np.median(rotations.as_rotvec(), axis=0))
+    return (rotations * rest.inv()).as_matrix()
+
+
+def render_video(rig, weights: np.ndarray, rotations: np.ndarray, path: Path, fps: float, colours,
+                 *, size: int = 512, pivot=(0.0, 0.0, -0.02)) -> Path:
+    """The rig posed frame by frame, turned by ``rotations`` about ``pivot``, as an MP4 ``size`` pixels square."""
+    from keyshape.render import frame_points, make_renderer
+    from keyshape.render.encode import VideoWriter
+
+    pivot = np.asarray(pivot)
+    camera = frame_points(rig.vertices[_part("face")], margin=1.25)
+    faces = rendered_faces(rig.faces)
+    with make_renderer(faces, size, size, n_vertices=rig.n_vertices, backend="gl", colours=colours) as renderer, \
+            VideoWriter(path, size, size, fps, crf=16) as out:
+        for f in range(len(weights)):
+            posed = rig.pose(weights[f : f + 1])[0]
+            out.write(renderer.render((posed - pivot) @ rotations[f].T + pivot, camera))
+    return path
+
+
+def vertex_error(rig, truth: np.ndarray, estimate: np.ndarray, vertex_sets: dict, *, chunk: int = 40) -> dict:
+    """Mean vertex error / mean displacement from neutral, %, per vertex set (rig weights in, both)."""
+    sums = {name: np.zeros(2) for name in vertex_sets}
+    for start in range(0, len(truth), chunk):
+        frames = slice(start, start + chunk)
+        posed_truth, posed = rig.pose(truth[frames]), rig.pose(np.clip(estimate[frames], 0, 1))
+        error = np.linalg.norm(posed - posed_truth, axis=2)
+        moved = np.linalg.norm(posed_truth - rig.vertices, axis=2)
+        for name, ids in vertex_sets.items():
+            sums[name] += [error[:, ids].sum(), moved[:, ids].sum()]
+    return {name: 100 * s[0] / s[1] for name, s in sums.items()}
+
+
+def oracles(key_weights: np.ndarray, truth: np.ndarray) -> dict:
+    """The best key → target mappings fitted on the truth: non-negative, and signed with a constant."""
+    from scipy.optimize import nnls
+
+    W = np.nan_to_num(key_weights)
+    nonneg = np.stack([nnls(W, truth[:, j])[0] for j in range(truth.shape[1])])
+    design = np.hstack([W, np.ones((len(W), 1))])
+    signed = np.linalg.lstsq(design, truth, rcond=None)[0]
+    return {"oracle (>= 0)": W @ nonneg.T, "oracle (signed + constant)": design @ signed}
+
+
+@dataclass(frozen=True)
+class Loop:
+    """Scores (% per vertex set) per route, and what the run found."""
+
+    scores: dict
+    detection_rate: float
+    n_keys: int
+    seconds: float
+
+
+def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = None) -> Loop:
+    """Run the loop of the module docstring, writing the video and the run under ``out``."""
+    from keyshape.app import RunOptions, run_take
+    from keyshape.io import load_rig, load_track, load_weights_csv
+    from keyshape.targets import Mapping, retarget
+
+    start = time.perf_counter()
+    rig = load_rig(rig_folder, unit=0.01)
+    landmarks = landmark_vertices(rig_folder)
+    source = load_track(performance) if performance else _demo_track(out)
+    truth = truth_from_scores(source.blendshapes, source.blendshape_names, rig.names)
+    rotations = head_rotations(source.head_matrix)
+    video = render_video(rig, truth, rotations, out / "ict.mp4", source.fps, ict_colours(rig.vertices, landmarks))
+    run = out / "run"
+    summary = run_take(video, run, RunOptions(rig=rig_folder, auto_targets=True, preview=False, extras=False),
+                       progress=False)
+    tracked = load_track(run / "track.npz")
+    key_weights = load_weights_csv(run / "weights.csv")
+    mapping = Mapping.from_file(run / "map.json", targets=rig.names)
+    estimates = {"keyshape": retarget(key_weights, mapping).values,
+                 "mediapipe": np.nan_to_num(tracked.blendshapes) @ arkit_to_rig(tracked.blendshape_names,
+                                                                                rig.names).T}
+    estimates.update(oracles(key_weights.values, truth))
+    sets = vertex_sets(rig, landmarks)
+    scores = {route: vertex_error(rig, truth, np.nan_to_num(e), sets) for route, e in estimates.items()}
+    return Loop(scores, summary.detection_rate, summary.keys.n_keys, time.perf_counter() - start)
+
+
+def vertex_sets(rig, landmarks: np.ndarray) -> dict:
+    """Face area, and its upper (above the nose tip) and lower halves."""
+    face = np.arange(FACE_AREA)
+    nose_tip = rig.vertices[landmarks[30], 1]
+    upper = face[rig.vertices[face, 1] > nose_tip]
+    return {"face": face, "upper": upper, "lower": np.setdiff1d(face, upper)}
+
+
+def _demo_track(out: Path):
+    """MediaPipe's scores and head matrix of the embedded clip (tracked once, kept in ``out``)."""
+    from keyshape.capture import track_to_file
+    from keyshape.cli.demo import demo_clip
+    from keyshape.io import load_track
+
+    path = out / "performance.npz"
+    if not path.exists():
+        track_to_file(demo_clip(), path, progress=False)
+    return load_track(path)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ict", type=Path, default=SHARED / ARCHIVE, help="the ICT-FaceKit archive")
+    parser.add_argument("--performance", type=Path, default=None,
+                        help="a track .npz with MediaPipe scores and head matrix (default: the embedded clip)")
+    parser.add_argument("--out", type=Path, default=None, help="folder for the video and the run (default: temporary)")
+    parser.add_argument("--json", type=Path, default=None, help="also write the scores here")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as scratch:
+        out = args.out or Path(scratch)
+        out.mkdir(parents=True, exist_ok=True)
+        folder = extract_ict(args.ict, out / "ict")
+        loop = rendered_loop(folder, out, performance=args.performance)
+    print(f"face found in {100 * loop.detection_rate:.1f} % of the frames; {loop.n_keys} keys; {loop.seconds:.0f} s")
+    print("| route | face area | upper | lower |")
+    print("|---|---|---|---|")
+    for route, s in loop.scores.items():
+        print(f"| {route} | {s['face']:.1f} % | {s['upper']:.1f} % | {s['lower']:.1f} % |")
+    if args.json:
+        args.json.write_text(json.dumps(loop.scores, indent=1))
+
+
+if __name__ == "__main__":
+    main()
