@@ -14,7 +14,16 @@ from keyshape.containers import KeyShapes, Rig, Weights
 from keyshape.exceptions import InputError, RigError
 from keyshape.io.rig import load_rig
 from keyshape.mesh import mesh_components
-from keyshape.targets import Correspondence, Mapping, auto_targets, propose_mapping, propose_targets, proposer, retarget
+from keyshape.targets import (
+    Correspondence,
+    KeyScores,
+    Mapping,
+    auto_targets,
+    propose_mapping,
+    propose_targets,
+    proposer,
+    retarget,
+)
 
 ROBOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "robot-expressive" / "RobotExpressive.glb"
 
@@ -361,3 +370,19 @@ def test_found_correspondence_proposes_nearly_the_built_targets(head, mediapipe_
     difference = np.linalg.norm(found.deltas - built.deltas, axis=2).sum(axis=1)
     motion = np.linalg.norm(built.deltas, axis=2).sum(axis=1)
     assert (difference < 0.35 * motion).all(), difference / motion
+
+
+def test_score_route_uses_the_trackers_scores_at_the_keys():
+    """With ARKit scores at the key frames, a key's gains are its scores minus the neutral's, on its region."""
+    rig, keys, corr, _ = planted(n_targets=4, n_keys=2)
+    rig = Rig(rig.vertices, rig.faces, rig.deltas, ("mouthSmile_L", "mouthSmile_R", "jawOpen", "eyeLookUp_L"))
+    names = ("_neutral", "mouthSmileLeft", "mouthSmileRight", "jawOpen", "eyeLookUpLeft", "browInnerUp")
+    scores = KeyScores(np.array([0.1, 0.6, 0.5, 0.0, 0.3, 0.2]),
+                       np.array([[0.0, 0.9, 0.8, 0.1, 0.0, 0.0], [0.0, 0.2, 0.1, 0.7, 0.9, 0.9]]), names)
+    mapping = propose_mapping(keys, rig, correspondence=corr, scores=scores)
+    np.testing.assert_allclose(mapping.offset, [0.6, 0.5, 0.0, 0.0])  # gaze excluded by default
+    np.testing.assert_allclose(mapping.matrix, [[0.3, -0.4], [0.3, -0.4], [0.1, 0.7], [0.0, 0.0]])
+    frames = Weights(np.array([[0.0, 0.0], [0.0, 1.0]]), keys.names, 30.0)
+    np.testing.assert_allclose(retarget(frames, mapping).values, [[0.6, 0.5, 0.0, 0.0], [0.2, 0.1, 0.7, 0.0]])
+    geometric = propose_mapping(keys, rig, correspondence=corr)  # no scores: the landmark fit, no offset
+    assert not geometric.offset.any() and (geometric.matrix >= 0).all()

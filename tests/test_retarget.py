@@ -157,3 +157,25 @@ def test_from_dict_with_given_sources():
     assert mapping.sources == ("a", "b") and mapping.matrix.tolist() == [[0.0, 1.0]]
     with pytest.raises(InputError, match=r"keys \['c'\] not among the sources"):
         Mapping.from_dict({"c": {"t": 1.0}}, sources=["a", "b"])
+
+
+def test_offset_mapping_starts_from_the_neutral_pose(tmp_path):
+    """A neutral that smiles: keys with less smile lower it (gains down to -offset); weights stay >= 0."""
+    m = Mapping.from_dict({"calm": {"smile": -0.4}, "grin": {"smile": 0.5, "jawOpen": 0.2}},
+                          targets=["smile", "jawOpen"], offset={"smile": 0.4})
+    assert m.offset.tolist() == [0.4, 0.0]
+    w = Weights(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]), ("calm", "grin"), fps=30)
+    out = retarget(w, m).values
+    np.testing.assert_allclose(out, [[0.4, 0.0], [0.0, 0.0], [0.9, 0.2], [0.5, 0.2]])
+    again = Mapping.from_file(m.save(tmp_path / "map.json"), targets=["jawOpen", "smile"])
+    np.testing.assert_allclose(retarget(w, again).values, out[:, ::-1])
+    assert json.loads((tmp_path / "map.json").read_text())["offset"] == {"smile": 0.4}
+
+
+def test_gains_below_minus_the_offset_are_refused():
+    with pytest.raises(InputError, match=r"must be finite and >= -0.4 \(its offset\)"):
+        Mapping.from_dict({"calm": {"smile": -0.5}}, offset={"smile": 0.4})
+    with pytest.raises(InputError, match=">= 0"):
+        Mapping(np.array([[-0.5]]), ["calm"], ["smile"], offset=[0.4])
+    with pytest.raises(InputError, match="offset must be 1 finite numbers >= 0"):
+        Mapping(np.array([[0.5]]), ["calm"], ["smile"], offset=[-0.1])

@@ -20,12 +20,22 @@ from ._batch import (
     write_summary,
 )
 from ._model import KeyShapeModel
-from ._pipeline import Solved, arkit_scores, discover_keys, fit_errors, head_and_gaze, head_poses, solve_take
+from ._pipeline import (
+    Solved,
+    arkit_scores,
+    discover_keys,
+    fit_errors,
+    head_and_gaze,
+    head_poses,
+    key_scores,
+    solve_take,
+)
 from ._ray import RayRunner, ray_available
 from ._run import OUTPUT_FILES, RunOptions, TakeSummary, run_take
 from ._sculpt import SculptKit, contact_sheet, sculpt_targets, write_sculpt_kit
 
 __all__ = ["discover_keys", "solve_take", "Solved", "fit_errors", "head_poses", "head_and_gaze", "arkit_scores",
+           "key_scores",
            "run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES",
            "batch", "BatchRow", "find_takes", "format_table", "is_complete", "make_runner", "VIDEO_SUFFIXES",
            "write_summary", "SequentialRunner", "RayRunner", "ray_available",

@@ -30,7 +30,7 @@ from ..keyshapes import check_neutral_frame, find_keyshapes
 from ..metrics import face_scale, reconstruction_error
 from ..schemes import resolve_regions, stable_points
 
-__all__ = ["discover_keys", "solve_take", "fit_errors", "head_and_gaze", "arkit_scores", "Solved"]
+__all__ = ["discover_keys", "solve_take", "fit_errors", "head_and_gaze", "arkit_scores", "key_scores", "Solved"]
 
 
 def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray) -> int:
@@ -202,3 +202,23 @@ def arkit_scores(track: Track, *, source: str | Path = "track") -> Weights:
         raise InputError(f"{source}: has no blendshape scores (tracks from `keyshape track` do)")
     keep = [i for i, n in enumerate(track.blendshape_names) if not n.startswith("_")]
     return Weights(track.blendshapes[:, keep], [track.blendshape_names[i] for i in keep], track.fps)
+
+
+def key_scores(keys: KeyShapes, track: Track):
+    """The tracker's ARKit scores at the key set's neutral and key frames, from ``track``.
+
+    Returns
+    -------
+    KeyScores or None
+        None when the track has no scores (another tracker's landmarks) or a key frame lies
+        outside it. Every key must come from ``track``'s take (the keys just discovered on it).
+    """
+    from ..targets import KeyScores
+
+    if track.blendshapes is None or not track.blendshape_names:
+        return None
+    frames = np.asarray(keys.frames, dtype=np.int64)
+    if max(int(frames.max(initial=0)), keys.neutral_frame) >= track.n_frames:
+        return None
+    return KeyScores(track.blendshapes[keys.neutral_frame], track.blendshapes[frames], tuple(track.blendshape_names))
+

@@ -62,7 +62,7 @@ class TakeSummary:
     keys: KeyShapes = field(repr=False, compare=False, default=None)
 
 
-def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object, bool, object]:
+def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None) -> tuple[Rig, object, bool, object]:
     """The character, the key -> target mapping, whether the rig file is kept whole, and the
     :class:`~keyshape.targets._propose.AutoTargets` proposal (None without ``auto_targets``)."""
     from ..io.rig import load_rig
@@ -77,7 +77,7 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes) -> tuple[Rig, object,
         from ..targets import auto_targets
 
         auto = auto_targets(keys, options.rig, correspondence=options.correspondence,
-                            normalize=options.normalize)
+                            normalize=options.normalize, scores=scores)
         return auto.rig, auto.mapping, auto.route == "mapping", auto
     rig = load_rig(options.rig)
     if options.mapping is not None:
@@ -131,7 +131,7 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     """
     from ..capture import track_video
     from ..io.keys_json import load_keys
-    from ._pipeline import discover_keys, solve_take
+    from ._pipeline import discover_keys, key_scores, solve_take
 
     start = time.perf_counter()
     video, outdir = Path(video), Path(outdir)
@@ -147,7 +147,8 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
                              upper=options.upper, max_error=options.max_error)
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
-    rig, mapping, keep_file, auto = _rig_and_mapping(options, keys)
+    scores = key_scores(keys, track) if options.keys is None else None  # reused keys: frames of other takes
+    rig, mapping, keep_file, auto = _rig_and_mapping(options, keys, scores)
     outdir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
     try:

@@ -16,6 +16,7 @@ from ._correspond_auto import find_correspondence
 from ._mapping import Mapping, retarget
 from ._propose import (
     AutoTargets,
+    KeyScores,
     auto_targets,
     default_character,
     propose_mapping,
@@ -26,7 +27,8 @@ from ._propose import (
 from ._transfer import LandmarkMotion, feature_groups, landmark_motion, spread, transfer_expressions
 
 __all__ = ["Mapping", "retarget",
-           "AutoTargets", "auto_targets", "propose_targets", "propose_mapping", "proposer", "resolve_correspondence",
+           "AutoTargets", "KeyScores", "auto_targets", "propose_targets", "propose_mapping", "proposer",
+           "resolve_correspondence",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
            "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",
            "Character", "stylised_head", "canonical_face", "default_character"]

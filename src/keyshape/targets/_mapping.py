@@ -2,18 +2,22 @@
 
 The paper drives each sculpted target with the weight of the key shape it was sculpted
 for ("a smile for a smile"). A :class:`Mapping` generalises that to a non-negative
-matrix ``M (n_targets, n_keys)``: target weights are ``w_target = M · w_key`` per frame,
-so one key may drive several targets, each with its own gain.
+matrix ``M (n_targets, n_keys)``: target weights are ``w_target = c + M · w_key`` per frame,
+so one key may drive several targets, each with its own gain. The offset ``c (n_targets,)``
+(zero unless given) is the rig's pose at the key set's neutral frame: an actor's "neutral" is
+often not at rest (a slight smile), and a key with less of the smile then lowers the smile
+target, so gains may be negative down to ``-c`` (``c + gain ≥ 0``).
 
 A mapping file (``--map MAP.json``) is JSON: ``{key: {target: gain, ...}, ...}``, e.g.
 ``{"lower_03": {"jawOpen": 0.8, "mouthFunnel": 0.3}}``; the same object may be wrapped as
 ``{"format": "keyshape-map", "version": 1, "gains": {...}}`` (what :meth:`Mapping.save`
 writes), or given as a matrix: ``{"keys": [...], "targets": [...], "matrix": [[...], ...]}``
-with one row per target.
+with one row per target. The wrapped form may carry ``"offset": {target: value, ...}``.
 
 Retargeting carries weights only: it assumes nothing about the rig's scale, orientation or
 topology. The targets themselves say how far each vertex moves at weight 1; a key's gain scales
-that. Weights are not clipped (a gain above 1, or several keys on one target, may exceed 1).
+that. Weights are not clipped above (a gain above 1, or several keys on one target, may exceed 1);
+with an offset they are clipped below at 0.
 """
 
 from __future__ import annotations
@@ -44,12 +48,14 @@ class Mapping:
 
     Attributes
     ----------
-    matrix : (n_targets, n_keys) float, ≥ 0
+    matrix : (n_targets, n_keys) float, ≥ ``-offset``
         ``matrix[t, k]`` is the gain with which key ``k`` drives target ``t``.
     sources : tuple of n_keys str
         Key names (the columns).
     targets : tuple of n_targets str
         Rig target names (the rows).
+    offset : (n_targets,) float, ≥ 0
+        Target weights when every key weight is 0 (the key set's neutral); zeros by default.
 
     Examples
     --------
@@ -62,6 +68,7 @@ class Mapping:
     matrix: np.ndarray
     sources: tuple[str, ...]
     targets: tuple[str, ...]
+    offset: np.ndarray | None = None
 
     def __post_init__(self):
         sources, targets = _names(self.sources), _names(self.targets)
@@ -71,15 +78,20 @@ class Mapping:
                 f"matrix must have shape (n_targets, n_keys) = ({len(targets)}, {len(sources)}); "
                 f"got {matrix.shape}"
             )
-        if not np.isfinite(matrix).all() or (matrix < 0).any():
-            raise InputError(f"mapping gains must be finite and >= 0; got min {np.nanmin(matrix, initial=0):g}")
+        offset = np.zeros(len(targets)) if self.offset is None else np.asarray(self.offset, dtype=float)
+        if offset.shape != (len(targets),) or not np.isfinite(offset).all() or (offset < 0).any():
+            raise InputError(f"offset must be {len(targets)} finite numbers >= 0; got {self.offset!r}")
+        if not np.isfinite(matrix).all() or (matrix + offset[:, None] < 0).any():
+            raise InputError(f"mapping gains must be finite and >= 0 (>= -offset with an offset); "
+                             f"got min {np.nanmin(matrix, initial=0):g}")
         for label, names in (("key", sources), ("target", targets)):
             duplicates = sorted({n for n in names if names.count(n) > 1})
             if duplicates:
                 raise InputError(f"{label} names must be unique; repeated: {duplicates}")
-        matrix = matrix.copy()
-        matrix.flags.writeable = False
+        matrix, offset = matrix.copy(), offset.copy()
+        matrix.flags.writeable = offset.flags.writeable = False
         object.__setattr__(self, "matrix", matrix)
+        object.__setattr__(self, "offset", offset)
         object.__setattr__(self, "sources", sources)
         object.__setattr__(self, "targets", targets)
 
@@ -119,7 +131,7 @@ class Mapping:
         return cls(matrix, keys, targets)
 
     @classmethod
-    def from_dict(cls, gains: dict, *, targets=None, sources=None) -> Mapping:
+    def from_dict(cls, gains: dict, *, targets=None, sources=None, offset: dict | None = None) -> Mapping:
         """A mapping from ``{key: {target: gain, ...}, ...}``.
 
         Parameters
@@ -132,6 +144,9 @@ class Mapping:
         sources : sequence of str, optional, keyword-only
             The columns, in this order (keys driving nothing stay as zero columns).
             Default: the dict's keys.
+        offset : dict of str -> float, optional, keyword-only
+            Target weights at the neutral (see :class:`Mapping`); a gain may then be as low as
+            ``-offset[target]``.
 
         Returns
         -------
@@ -152,7 +167,8 @@ class Mapping:
         unknown_keys = [k for k in gains if str(k) not in sources]
         if unknown_keys:
             raise InputError(f"gains name keys {unknown_keys} not among the sources {list(sources)}")
-        mentioned = list(dict.fromkeys(str(t) for row in gains.values() for t in row))
+        offset = {str(t): _gain(v, "offset", str(t), 0.0) for t, v in (offset or {}).items()}
+        mentioned = list(dict.fromkeys([*(str(t) for row in gains.values() for t in row), *offset]))
         rows = mentioned if targets is None else _names(targets)
         unknown = [t for t in mentioned if t not in rows]
         if unknown:
@@ -161,8 +177,8 @@ class Mapping:
         for key, row in gains.items():
             k = sources.index(str(key))
             for target, gain in row.items():
-                matrix[rows.index(str(target)), k] = _gain(gain, str(key), target)
-        return cls(matrix, sources, rows)
+                matrix[rows.index(str(target)), k] = _gain(gain, str(key), target, offset.get(str(target), 0.0))
+        return cls(matrix, sources, rows, np.array([offset.get(t, 0.0) for t in rows]))
 
     @classmethod
     def from_file(cls, path, *, targets=None) -> Mapping:
@@ -202,9 +218,13 @@ class Mapping:
                 mapping = cls._from_matrix(data)
                 return mapping if targets is None else cls.from_dict(mapping.to_dict(), targets=targets,
                                                                     sources=mapping.sources)
-            gains = data.get("gains") if isinstance(data, dict) and data.get("format") == MAP_FORMAT else data
+            wrapped = isinstance(data, dict) and data.get("format") == MAP_FORMAT
+            gains = data.get("gains") if wrapped else data
             _check_gains(gains)
-            return cls.from_dict(gains, targets=targets)
+            offset = data.get("offset") if wrapped else None
+            if offset is not None and not isinstance(offset, dict):
+                raise InputError(f'"offset" must be an object {{target: weight, ...}}; got {offset!r}')
+            return cls.from_dict(gains, targets=targets, offset=offset)
         except (InputError, RigError) as error:
             raise type(error)(f"{path}: {error}") from None
 
@@ -223,7 +243,10 @@ class Mapping:
         """Write the mapping as JSON (``{"format": "keyshape-map", "version": 1, "gains": ...}``), atomically."""
         from ..io.atomic import atomic_path
 
-        text = json.dumps({"format": MAP_FORMAT, "version": 1, "gains": self.to_dict()}, indent=1)
+        document = {"format": MAP_FORMAT, "version": 1, "gains": self.to_dict()}
+        if self.offset.any():
+            document["offset"] = {t: float(c) for t, c in zip(self.targets, self.offset) if c != 0}
+        text = json.dumps(document, indent=1)
         with atomic_path(path) as tmp:
             tmp.write_text(text + "\n", encoding="utf-8")
         return Path(path)
@@ -269,18 +292,19 @@ def _by_name_message(missing: list[str], extra: list[str]) -> str:
     return "; ".join(parts) + "; give a mapping to connect differently named keys and targets"
 
 
-def _gain(value, key: str, target: str) -> float:
+def _gain(value, key: str, target: str, offset: float = 0.0) -> float:
     try:
         gain = float(value)
     except (TypeError, ValueError):
         raise InputError(f"gain for key {key!r} -> target {target!r} must be a number; got {value!r}") from None
-    if not np.isfinite(gain) or gain < 0:
-        raise InputError(f"gain for key {key!r} -> target {target!r} must be finite and >= 0; got {value!r}")
+    if not np.isfinite(gain) or gain < -offset:
+        floor = f"-{offset:g} (its offset)" if offset else "0"
+        raise InputError(f"gain for key {key!r} -> target {target!r} must be finite and >= {floor}; got {value!r}")
     return gain
 
 
 def retarget(weights: Weights, mapping: Mapping) -> Weights:
-    """Target weights from key weights: ``w_target(t) = M · w_key(t)``.
+    """Target weights from key weights: ``w_target(t) = c + M · w_key(t)`` (``c = mapping.offset``).
 
     Parameters
     ----------
@@ -293,7 +317,8 @@ def retarget(weights: Weights, mapping: Mapping) -> Weights:
     Returns
     -------
     Weights
-        ``values (n_frames, n_targets)`` named ``mapping.targets``, same fps.
+        ``values (n_frames, n_targets)`` named ``mapping.targets``, same fps; with an offset,
+        clipped below at 0.
 
     Raises
     ------
@@ -313,4 +338,6 @@ def retarget(weights: Weights, mapping: Mapping) -> Weights:
     keyed = np.nan_to_num(weights.values[:, columns], nan=0.0)
     # f: frame, k: key, t: target
     values = np.einsum("fk,tk->ft", keyed, mapping.matrix)
+    if mapping.offset.any():
+        values = np.maximum(values + mapping.offset, 0.0)
     return Weights(values, mapping.targets, weights.fps)
