@@ -16,7 +16,8 @@ The artist sculpts the targets (e.g. Blender's shape keys), exports a ``.glb``, 
 
 Hook for automatic targets: ``propose(keys, neutral) -> (n_keys, n_vertices, 3)`` deltas,
 given the key shapes and the character's neutral (:class:`~keyshape.containers.Rig`, no
-targets, vertices as stored); its result becomes the starting targets.
+targets; glTF vertices in world space, as :func:`keyshape.io.load_rig` reads them); its result
+becomes the starting targets (written back in each mesh's own space).
 """
 
 from __future__ import annotations
