@@ -243,7 +243,7 @@ def browser():
         chromium.close()
 
 
-def open_stage(browser, url: str):
+def _open(browser, url: str):
     """A page on the viewer, once it says it is ready; JS errors are collected in page.errors."""
     page = browser.new_page(viewport={"width": 1280, "height": 640})
     errors = []
@@ -324,7 +324,7 @@ def test_viewer_on_the_demo(browser, demo_take, record_property):
     assert list(anim.names) == names
     info = json.loads((demo_take / "take.json").read_text())
     with _Served(demo_take) as server:
-        page = open_stage(browser, server.url)
+        page = _open(browser, server.url)
         assert page.evaluate("keyshape.names") == names
         assert page.evaluate("[keyshape.clock, keyshape.nFrames, keyshape.fps, keyshape.webgl]") == [
             "video", info["n_frames"], info["fps"], True]
@@ -390,7 +390,7 @@ def test_viewer_on_known_answers(browser, small_take):
     names, csv = _csv_weights(small_take)
     rotations = read_glb_animation(small_take / "animation.glb").rotations
     with _Served(small_take) as server:
-        page = open_stage(browser, server.url)
+        page = _open(browser, server.url)
         assert page.evaluate("keyshape.clock") == "video"
         for frame in [*range(20), 3]:
             assert page.evaluate(f"keyshape.seek({frame})") == frame
@@ -409,7 +409,7 @@ def test_viewer_without_the_video(browser, tmp_path):
     folder = _write_take(tmp_path / "take", video=False)
     names, csv = _csv_weights(folder)
     with _Served(folder) as server:
-        page = open_stage(browser, server.url)
+        page = _open(browser, server.url)
         assert page.evaluate("keyshape.clock") == "timer"
         assert "No source video" in page.locator("#notice").inner_text()
         page.evaluate("keyshape.play()")

@@ -107,7 +107,7 @@ def _build_stage(rig: Rig, weights: Weights, quats: np.ndarray | None):
     skeleton = _skeleton(stage)
     mesh = _mesh(stage, rig)
     _blend_shapes(stage, mesh, skeleton, rig)
-    new_animation(stage, skeleton, rig, weights, quats)
+    _animation(stage, skeleton, rig, weights, quats)
     return stage
 
 
@@ -180,7 +180,7 @@ def _identifiers(names, Tf) -> list[str]:
     return out
 
 
-def new_animation(stage, skeleton, rig: Rig, weights: Weights, quats: np.ndarray | None) -> None:
+def _animation(stage, skeleton, rig: Rig, weights: Weights, quats: np.ndarray | None) -> None:
     Gf, _, _, Usd, _, UsdSkel, _, Vt = _pxr()
     animation = UsdSkel.Animation.Define(stage, f"{ROOT}/{ANIMATION}")
     animation.CreateJointsAttr([JOINT])
