@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from keyshape.containers import KeyShapes, Poses, Rig, Weights
 from keyshape.exceptions import InputError, RigError
 from keyshape.io import gltf as gltf_io
-from keyshape.io.gltf import read_glb_animation, write_glb
+from keyshape.io.gltf import eye_nodes, read_glb_animation, write_glb
 from keyshape.io.rig import load_rig
 from keyshape.schemes import face_triangles
 
@@ -485,6 +485,7 @@ def test_eye_nodes_turn_with_the_gaze(rig, weights, tmp_path):
     assert [c.target.path for c in no_eyes.animations[0].channels] == ["weights"]  # no eye nodes: none turned
     with pytest.raises(RigError, match=r"no eye nodes named \['L', 'R'\]"):
         animate_gltf(plain, weights, tmp_path / "x.glb", eyes=look, eye_nodes=("L", "R"))
+    assert eye_nodes(source) == ("Eye.L", "Eye.R") and eye_nodes(plain) is None  # what auto-targets asks
     assert not (tmp_path / "x.glb").exists()
 
 

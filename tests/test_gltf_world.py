@@ -132,12 +132,15 @@ def _sparse_shorts(document, chunks, values: np.ndarray) -> int:
     return len(document.accessors) - 1
 
 
-def dcc_export(path, rig: Rig, quantized: Quantized, *, with_matrix: bool = False):
+def dcc_export(path, rig: Rig, quantized: Quantized, *, with_matrix: bool = False,
+               sparse: tuple[str, ...] = ("browRaise_L",)):
     """``rig`` as a DCC tool writes it: Root (Z-up, cm) > Head_grp (moved, turned) > Face (dequantization).
 
     The file has its own animation ``Idle`` (the head group nodding) before keyshape touches it.
-    ``with_matrix`` gives the head group a ``matrix`` instead of translation and rotation.
+    ``with_matrix`` gives the head group a ``matrix`` instead of translation and rotation; the
+    targets named in ``sparse`` are stored as sparse accessors.
     """
+    assert rig.n_vertices <= 65535  # UNSIGNED_SHORT indices
     document = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0", generator="a DCC tool"), scene=0,
                                scenes=[pygltflib.Scene(nodes=[0])],
                                extensionsUsed=[QUANTIZATION], extensionsRequired=[QUANTIZATION])
@@ -145,8 +148,8 @@ def dcc_export(path, rig: Rig, quantized: Quantized, *, with_matrix: bool = Fals
     position = _vertex_shorts(document, chunks, quantized.positions)
     targets = []
     for name, delta in zip(rig.names, quantized.deltas):
-        sparse = name == "browRaise_L"
-        targets.append({"POSITION": (_sparse_shorts if sparse else _vertex_shorts)(document, chunks, delta)})
+        store = _sparse_shorts if name in sparse else _vertex_shorts
+        targets.append({"POSITION": store(document, chunks, delta)})
     faces = rig.faces.reshape(-1).astype("<u2").tobytes()
     document.accessors.append(pygltflib.Accessor(
         bufferView=_view(document, chunks, faces, target=pygltflib.ELEMENT_ARRAY_BUFFER), byteOffset=0,

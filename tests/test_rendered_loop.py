@@ -42,8 +42,8 @@ def test_rendered_loop(tmp_path):
     loop = bench.rendered_loop(folder, tmp_path)
     scores = loop.scores
     assert loop.detection_rate > 0.95
-    # measured: keyshape 38 % (face) / 94 % (upper) / 18 % (lower); MediaPipe's own scores 35 / 82 / 18;
+    # measured: keyshape 35 % (face) / 82 % (upper) / 18 % (lower); MediaPipe's own scores 35 / 82 / 18;
     # the oracle mappings 19 % (>= 0) and 9 % (signed + constant); the geometric mapping gave 116 %
-    assert scores["keyshape"]["face"] < 45 and scores["keyshape"]["lower"] < 22
+    assert scores["keyshape"]["face"] < 40 and scores["keyshape"]["lower"] < 22
     assert scores["oracle (signed + constant)"]["face"] < 15
     assert scores["mediapipe"]["face"] < 45

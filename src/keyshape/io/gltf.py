@@ -71,7 +71,7 @@ from ._gltf_read import (
 from .atomic import atomic_path
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
-           "read_meshes", "GlbAnimation", "Part"]
+           "read_meshes", "eye_nodes", "GlbAnimation", "Part"]
 
 ANIMATION = ANIMATION_NAMES[0]
 
@@ -276,6 +276,17 @@ def _performance(document, blob, meshes, weights, source) -> tuple[pygltflib.Ani
             by_mesh[mesh] = weights_output(blob, mesh_weights(document.meshes[mesh], weights))
         outputs.append((node, by_mesh[mesh]))
     return new_animation(times, outputs, ANIMATION), nodes
+
+
+def eye_nodes(source) -> tuple[str, str] | None:
+    """Names of the (left, right) eye nodes :func:`animate_gltf` would turn with the gaze, or None.
+
+    None when the file has no such nodes: its eyes move only through morph targets (``eyeLook*``).
+    """
+    document, _ = load_document(source, editable=False)
+    nodes = edit.morph_nodes(document, morph_meshes(document, source))
+    found = find_eyes(document, find_head(document, nodes))
+    return None if found is None else (document.nodes[found[0]].name, document.nodes[found[1]].name)
 
 
 def _turn_head(document, blob, animation, nodes, poses, head, source) -> None:

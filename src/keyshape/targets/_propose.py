@@ -156,7 +156,8 @@ def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float =
       scores become the mapping's offset (:func:`_score_mapping`). On a rendered closed loop
       (``benchmarks/bench_rendered_loop.py``) this gives 35 % vertex error where the geometric
       fit gives 116 %: the actor's neutral is rarely at rest, and landmark motion alone does not
-      tell ARKit's overlapping shapes apart;
+      tell ARKit's overlapping shapes apart (:func:`auto_targets` also maps the gaze targets this
+      way when the rig has no eye nodes);
     * otherwise, by non-negative least squares on the landmark motion (below).
 
     Parameters
@@ -388,6 +389,8 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         Mapping route: see :func:`propose_mapping`.
     scores : KeyScores or None, keyword-only
         Mapping route: the tracker's ARKit scores at the key frames (see :func:`propose_mapping`).
+        With them, gaze targets (``eyeLook*``) are mapped too, unless the rig is a glTF file whose
+        eyes turn by their own nodes (then the gaze from the irises turns those).
 
     Returns
     -------
@@ -405,10 +408,22 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
     character, corr, rigid = _character(keys, rig, correspondence, unit)
     if route == "mapping" or (route == "auto" and character.n_targets > 0):
-        mapping = propose_mapping(keys, character, correspondence=corr, normalize=normalize, scores=scores)
+        # gaze from the scores too when the eyes turn only through targets (no eye nodes to turn)
+        exclude = GAZE_TARGETS if scores is None or _eyes_on_nodes(rig) else ()
+        mapping = propose_mapping(keys, character, correspondence=corr, normalize=normalize, scores=scores,
+                                  exclude=exclude)
         return AutoTargets(character, mapping, "mapping", corr)
     proposed = propose_targets(keys, character, correspondence=corr, rigid=rigid, falloff=falloff)
     return AutoTargets(proposed, Mapping.by_name(keys.names, proposed.names), "transfer", corr)
+
+
+def _eyes_on_nodes(rig) -> bool:
+    """Whether the rig is a glTF file whose eyes the writer turns by their nodes (with the gaze)."""
+    if isinstance(rig, (str, Path)) and Path(rig).suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import eye_nodes
+
+        return eye_nodes(rig) is not None
+    return False
 
 
 def _character(keys: KeyShapes, rig, correspondence, unit: float) -> tuple[Rig, Correspondence, tuple]:
