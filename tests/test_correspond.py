@@ -169,6 +169,28 @@ def test_found_landmarks_sit_where_the_head_was_built(head):
     assert not np.isin(corr.vertices, eyes).any()  # never on an eyeball
 
 
+def test_the_front_is_found_on_a_z_up_head(head):
+    """A Z-up export facing -Y (Blender's front view): found by the views tried, the same landmarks."""
+    from keyshape.targets._correspond_auto import view_rotation
+
+    rig = head.rig
+    to_z_up = view_rotation("-y", "+z").T  # glTF's +Z front -> -Y, +Y up -> +Z
+    z_up = rig.vertices @ to_z_up.T
+    np.testing.assert_allclose(z_up[:, 2].max() - z_up[:, 2].min(), np.ptp(rig.vertices[:, 1]))
+    corr = find_correspondence(z_up, rig.faces)
+    plain = find_correspondence(rig.vertices, rig.faces)
+    shared = np.intersect1d(corr.landmarks, plain.landmarks)
+    assert len(shared) > 0.95 * plain.n_corr
+    moved = corr.points(z_up)[np.searchsorted(corr.landmarks, shared)]
+    there = plain.points(rig.vertices)[np.searchsorted(plain.landmarks, shared)] @ to_z_up.T
+    eye_distance = np.linalg.norm(rig.vertices[33] - rig.vertices[263])
+    assert np.percentile(np.linalg.norm(moved - there, axis=1), 95) < 0.02 * eye_distance
+    with pytest.raises(RigError, match=r"facing \+Z tried.*--front AXIS"):
+        find_correspondence(z_up, rig.faces, front="+z")
+    with pytest.raises(InputError, match="front must be one of"):
+        find_correspondence(z_up, rig.faces, front="up")
+
+
 def test_no_face_on_the_render_is_a_clear_error():
     u, v = np.meshgrid(np.linspace(0, np.pi, 20), np.linspace(0, 2 * np.pi, 40))
     sphere = np.stack([np.sin(u) * np.cos(v), np.sin(u) * np.sin(v), np.cos(u)], axis=-1).reshape(-1, 3) * 0.1

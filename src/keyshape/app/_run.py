@@ -42,6 +42,7 @@ class RunOptions:
     convex: bool = False
     auto_targets: bool = False  # propose the rig's targets (or a mapping) for the keys
     correspondence: Path | None = None  # auto_targets: landmark -> mesh file (default: found)
+    front: str = "auto"  # auto_targets: the axis the character's face looks along (default: looked for)
     normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
     preview: bool = True
     extras: bool = True
@@ -76,7 +77,7 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None) -> tuple
     if options.auto_targets:
         from ..targets import auto_targets
 
-        auto = auto_targets(keys, options.rig, correspondence=options.correspondence,
+        auto = auto_targets(keys, options.rig, correspondence=options.correspondence, front=options.front,
                             normalize=options.normalize, scores=scores)
         return auto.rig, auto.mapping, auto.route == "mapping", auto
     rig = load_rig(options.rig)

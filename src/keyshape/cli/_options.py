@@ -74,9 +74,14 @@ def add_solve_options(p: argparse.ArgumentParser) -> None:
 
 
 def add_correspondence_option(p, when: str = "") -> None:
-    """``--correspondence CORR.json`` (``propose`` and ``run --auto-targets``; ``when`` prefixes the help)."""
+    """``--correspondence CORR.json`` and ``--front AXIS`` (``propose`` and ``run --auto-targets``; ``when``
+    prefixes the help)."""
     p.add_argument("--correspondence", type=Path, default=None, metavar="CORR.json",
                    help=f"{when}landmark -> mesh point file (default: found automatically)")
+    p.add_argument("--front", choices=("auto", "+z", "-z", "+x", "-x", "+y", "-y"), default="auto", metavar="AXIS",
+                   help=f"{when}the axis the character's face looks along, for the automatic correspondence: "
+                        "+z (glTF), -y (Z-up exports), ...; default auto: tried in turn until MediaPipe finds "
+                        "the face")
 
 
 def add_normalize_option(p, when: str = "mapping: ") -> None:

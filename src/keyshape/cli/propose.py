@@ -86,7 +86,7 @@ def _character(args):
 def _propose_mapping(args, keys, rig) -> None:
     from ..targets import propose_mapping, resolve_correspondence
 
-    corr = resolve_correspondence(args.correspondence, rig, keys.n_landmarks)
+    corr = resolve_correspondence(args.correspondence, rig, keys.n_landmarks, front=args.front)
     _save_correspondence(args, corr)
     mapping = propose_mapping(keys, rig, correspondence=corr, normalize=args.normalize)
     mapping.save(args.output)
@@ -102,7 +102,8 @@ def _propose_mapping(args, keys, rig) -> None:
 def _propose_targets(args, keys, rig, source) -> None:
     from ..targets import auto_targets
 
-    auto = auto_targets(keys, rig, correspondence=args.correspondence, route="transfer", falloff=args.falloff)
+    auto = auto_targets(keys, rig, correspondence=args.correspondence, route="transfer", falloff=args.falloff,
+                        front=args.front)
     _save_correspondence(args, auto.correspondence)
     written = _write_targets(args.output, auto.rig, source, mesh_choice(args.mesh))
     if not args.quiet:

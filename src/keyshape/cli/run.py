@@ -47,8 +47,8 @@ def add_arguments(p) -> None:
 
 def check(parser, args) -> None:
     """Usage errors argparse cannot see (exit code 2)."""
-    if not args.auto_targets and (args.correspondence or args.normalize):
-        parser.error("--correspondence and --normalize only apply with --auto-targets")
+    if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto"):
+        parser.error("--correspondence, --front and --normalize only apply with --auto-targets")
 
 
 def run(args) -> None:
@@ -57,7 +57,7 @@ def run(args) -> None:
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          neutral=args.neutral, auto_targets=args.auto_targets,
-                         correspondence=args.correspondence, normalize=args.normalize,
+                         correspondence=args.correspondence, front=args.front, normalize=args.normalize,
                          capture=capture_kwargs(args), preview=not args.no_preview,
                          **solve_kwargs(args))
     summary = run_take(args.video, args.output, options, progress=progress(args))

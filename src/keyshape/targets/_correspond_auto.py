@@ -7,24 +7,29 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..exceptions import RigError
+from ..exceptions import InputError, RigError
 from ..mesh import mesh_components, snap_to_surface
 from ._correspond import Correspondence
 
-__all__ = ["find_correspondence"]
+__all__ = ["find_correspondence", "view_rotation", "FRONTS"]
+
+
+FRONTS = ("auto", "+z", "-z", "+x", "-x", "+y", "-y")
+# the views "auto" tries, in order: (the axis the face looks along, the axis up the face)
+_VIEWS = (("+z", "+y"), ("-y", "+z"), ("+y", "+z"), ("-z", "+y"), ("+x", "+y"), ("-x", "+y"))
 
 
 def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 640,
-                        backend: str = "auto") -> Correspondence:
+                        backend: str = "auto", front: str = "auto") -> Correspondence:
     """MediaPipe's 478 landmarks on a human-like head, found on a front render of its neutral.
 
-    The mesh (glTF axes: +Y up, facing +Z) is rendered from the front with an orthographic
-    camera, MediaPipe's face landmarker runs on the picture, and the picture is rendered again
-    framed on the face it found (a second, sharper pass). Each landmark becomes the visible
-    surface point under its pixel (barycentric in the visible triangle); a landmark that falls
-    off the mesh, on a small part (an eyeball, a tooth) or on a surface seen from behind (the
-    inside of the head through an open mouth) takes the nearest visible vertex instead
-    (the steps below).
+    The mesh is turned so that its front faces the camera, rendered with an orthographic camera,
+    MediaPipe's face landmarker runs on the picture, and the picture is rendered again framed on
+    the face it found (a second, sharper pass). Each landmark becomes the visible surface point
+    under its pixel (barycentric in the visible triangle, so it holds for the mesh as it is, not
+    turned); a landmark that falls off the mesh, on a small part (an eyeball, a tooth) or on a
+    surface seen from behind (the inside of the head through an open mouth) takes the nearest
+    visible vertex instead (the steps below).
 
     Parameters
     ----------
@@ -33,7 +38,11 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
     size : int, keyword-only
         Side of the square renders, pixels.
     backend : "auto", "gl" or "numpy", keyword-only
-        Renderer (see :func:`keyshape.render._backend.make_renderer`).
+        Renderer (see :func:`keyshape.render.make_renderer`).
+    front : "auto", "+z", "-z", "+x", "-x", "+y" or "-y", keyword-only
+        The axis the character's face looks along. "auto" tries +Z (glTF's convention, Y up), then
+        −Y and +Y (Z-up exports), −Z, +X and −X, and keeps the first view where MediaPipe finds a
+        face.
 
     Returns
     -------
@@ -43,23 +52,48 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
     Raises
     ------
     RigError
-        If MediaPipe finds no face on the render (not a human-like head, or not facing +Z).
+        If MediaPipe finds no face on any view tried (not a human-like head, or facing elsewhere).
     """
     from ..render import frame_points
 
-    vertices = np.asarray(vertices, dtype=float)
+    if front not in FRONTS:
+        raise InputError(f"front must be one of {', '.join(FRONTS)}; got {front!r}")
     faces = np.asarray(faces, dtype=np.int64)
-    camera = frame_points(vertices, margin=1.05)
-    picture = _render(vertices, faces, camera, size, backend)
-    found = _detect(picture)
-    if found is None:
-        raise RigError("MediaPipe found no face on a front render of the character (is it a human-like "
-                       "head facing +Z?): give the correspondence as a JSON file")
+    views = _VIEWS if front == "auto" else [next(v for v in _VIEWS if v[0] == front)]
+    for axis, up in views:
+        vertices_turned = np.asarray(vertices, dtype=float) @ view_rotation(axis, up).T
+        camera = frame_points(vertices_turned, margin=1.05)
+        found = _detect(_render(vertices_turned, faces, camera, size, backend))
+        if found is not None:
+            break
+    else:
+        tried = ", ".join(axis.upper() for axis, _ in views)
+        raise RigError(f"MediaPipe found no face on a front render of the character (facing {tried} tried; is it "
+                       "a human-like head?): pass --front AXIS (front=...) if its face looks along another "
+                       "axis, or give the correspondence as a JSON file (--correspondence)")
+    vertices = vertices_turned
     camera = _face_camera(vertices, camera, found, size)
     closer = _detect(_render(vertices, faces, camera, size, backend))
     landmarks = closer if closer is not None else found
     camera = camera if closer is not None else frame_points(vertices, margin=1.05)
     return _surface_points(landmarks[:, :2], vertices, faces, camera, size)
+
+
+def view_rotation(front: str, up: str) -> np.ndarray:
+    """The rotation ``(3, 3)`` that turns axis ``front`` to +Z (toward the camera) and ``up`` to +Y.
+
+    >>> view_rotation("-y", "+z") @ [0, -1, 0]
+    array([0., 0., 1.])
+    """
+    axes = {"x": 0, "y": 1, "z": 2}
+
+    def unit(name):
+        vector = np.zeros(3)
+        vector[axes[name[1]]] = 1.0 if name[0] == "+" else -1.0
+        return vector
+
+    forward, upward = unit(front), unit(up)
+    return np.stack([np.cross(upward, forward), upward, forward]) + 0.0  # rows: the new x, y, z
 
 
 def _render(vertices, faces, camera, size: int, backend: str) -> np.ndarray:

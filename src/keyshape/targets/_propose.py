@@ -53,11 +53,12 @@ __all__ = ["AutoTargets", "KeyScores", "auto_targets", "default_character", "pro
 Route = Literal["auto", "transfer", "mapping"]
 
 
-def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int) -> Correspondence:
+def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int, *, front: str = "auto") -> Correspondence:
     """A :class:`Correspondence` for ``rig`` from an object, a JSON path, or None (found automatically).
 
     None renders the rig's neutral from the front and tracks it with MediaPipe
-    (:func:`keyshape.targets._correspond.find_correspondence`), which serves MediaPipe key shapes only.
+    (:func:`keyshape.targets.find_correspondence`, looking for its front unless ``front`` names
+    it), which serves MediaPipe key shapes only.
     """
     if isinstance(correspondence, Correspondence):
         return correspondence.check(rig.n_vertices, n_landmarks)
@@ -67,7 +68,7 @@ def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int) -> Corres
     if n_landmarks not in (468, 478):
         raise InputError(f"the key shapes have {n_landmarks} landmarks: only MediaPipe landmarks (478) are "
                          "found automatically; give a correspondence file (landmark -> vertex)")
-    found = find_correspondence(rig.vertices, rig.faces)
+    found = find_correspondence(rig.vertices, rig.faces, front=front)
     keep = found.landmarks < n_landmarks
     return Correspondence(found.landmarks[keep], found.vertices[keep], found.weights[keep], n_landmarks)
 
@@ -83,7 +84,7 @@ def _as_rig(character) -> Rig:
 
 
 def propose_targets(keys: KeyShapes, character, *, correspondence=None, falloff: float = 1.0,
-                    rescale: bool = True, rigid: Sequence[np.ndarray] = ()) -> Rig:
+                    rescale: bool = True, rigid: Sequence[np.ndarray] = (), front: str = "auto") -> Rig:
     """The character with one proposed target per key shape, by expression transfer.
 
     Parameters
@@ -103,7 +104,7 @@ def propose_targets(keys: KeyShapes, character, *, correspondence=None, falloff:
         ``names = keys.names``.
     """
     rig = _as_rig(character)
-    corr = resolve_correspondence(correspondence, rig, keys.n_landmarks)
+    corr = resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front)
     deltas = transfer_expressions(keys, rig.vertices, rig.faces, corr, falloff=falloff, rescale=rescale,
                                   rigid=rigid)
     return Rig(rig.vertices, rig.faces, deltas, keys.names)
@@ -145,7 +146,8 @@ class KeyScores:
 
 def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float = 3e-3, min_gain: float = 0.05,
                     max_gain: float | None = 2.0, normalize: bool = False, rescale: bool = True,
-                    exclude: Sequence[str] = GAZE_TARGETS, scores: KeyScores | None = None) -> Mapping:
+                    exclude: Sequence[str] = GAZE_TARGETS, scores: KeyScores | None = None,
+                    front: str = "auto") -> Mapping:
     """A key → target mapping onto a rig's own blendshapes.
 
     Two ways, chosen by the evidence at hand:
@@ -208,7 +210,7 @@ def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float =
     rig = _as_rig(rig)
     if rig.n_targets == 0:
         raise RigError("the rig has no blendshapes to combine: propose target shapes instead (transfer route)")
-    corr = resolve_correspondence(correspondence, rig, keys.n_landmarks)
+    corr = resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front)
     if scores is not None and _score_channels(scores.names, rig.names).any():
         return _score_mapping(keys, rig, corr, scores, ~_excluded(rig.names, exclude))
     basis, wanted, n_points = _mapping_system(keys, rig, corr, rescale)
@@ -368,7 +370,7 @@ class AutoTargets:
 
 def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route = "auto",
                  unit: float = 1.0, falloff: float = 1.0, normalize: bool = False,
-                 scores: KeyScores | None = None) -> AutoTargets:
+                 scores: KeyScores | None = None, front: str = "auto") -> AutoTargets:
     """Propose the character's targets for ``keys`` in one call.
 
     Parameters
@@ -387,6 +389,9 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         Transfer route: see :func:`keyshape.targets._transfer.spread`.
     normalize : bool, keyword-only
         Mapping route: see :func:`propose_mapping`.
+    front : str, keyword-only
+        The axis the character's face looks along, for the automatic correspondence (see
+        :func:`keyshape.targets.find_correspondence`); "auto" looks for it.
     scores : KeyScores or None, keyword-only
         Mapping route: the tracker's ARKit scores at the key frames (see :func:`propose_mapping`).
         With them, gaze targets (``eyeLook*``) are mapped too, unless the rig is a glTF file whose
@@ -406,7 +411,7 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
     """
     if route not in ("auto", "transfer", "mapping"):
         raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
-    character, corr, rigid = _character(keys, rig, correspondence, unit)
+    character, corr, rigid = _character(keys, rig, correspondence, unit, front)
     if route == "mapping" or (route == "auto" and character.n_targets > 0):
         # gaze from the scores too when the eyes turn only through targets (no eye nodes to turn)
         exclude = GAZE_TARGETS if scores is None or _eyes_on_nodes(rig) else ()
@@ -426,7 +431,7 @@ def _eyes_on_nodes(rig) -> bool:
     return False
 
 
-def _character(keys: KeyShapes, rig, correspondence, unit: float) -> tuple[Rig, Correspondence, tuple]:
+def _character(keys: KeyShapes, rig, correspondence, unit: float, front: str) -> tuple[Rig, Correspondence, tuple]:
     """The character, its correspondence and its rigid parts."""
     if rig is None:
         head = stylised_head()
@@ -434,7 +439,7 @@ def _character(keys: KeyShapes, rig, correspondence, unit: float) -> tuple[Rig, 
         return head.rig, resolve_correspondence(corr, head.rig, keys.n_landmarks), ()
     if isinstance(rig, (str, Path)):
         rig = _load(Path(rig), unit)
-    return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks), ()
+    return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front), ()
 
 
 def _load(path: Path, unit: float) -> Rig:
