@@ -202,3 +202,17 @@ def test_report_can_embed_the_video(extras):
     text = result.report.read_text(encoding="utf-8")
     video = re.search(r'<video[^>]+src="data:video/mp4;base64,([^"]+)"', text).group(1)
     assert base64.b64decode(video) == (folder / "preview.mp4").read_bytes()
+
+
+def test_report_states_the_correspondence_quality(tmp_path):
+    from keyshape.targets import Correspondence
+
+    folder = make_take_folder(tmp_path / "take", n_frames=20)
+    found = Correspondence([0, 3, 5], [[0, 1, 2]] * 3, [[1, 0, 0]] * 3, 478, residual=[0.0, 0.002, 0.03])
+    found.save(folder / "correspondence.json")
+    result = write_take_extras(folder, progress=False, preview=False)
+    quality = result.numbers["correspondence"]
+    assert quality["landmarks_kept"] == 3 and quality["moved"] == 1 and quality["median_residual_pct"] == 0.2
+    assert "3 of 478 landmarks on its surface" in result.report.read_text(encoding="utf-8")
+    given = Correspondence.from_vertex_ids([4, 5, 6])
+    assert given.quality() is None and "quality" not in given.to_dict()

@@ -74,6 +74,13 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
     pictures = _pictures(outdir, take, fit, k_table)
     notes = [] if take.video is not None else [(f"The source video {take.info.get('video')!r} was not found: "
                                                 "landmarks are drawn on a blank background.")]
+    quality = _correspondence_quality(outdir / "correspondence.json")
+    if quality:
+        numbers["correspondence"] = quality
+        notes.append(f"Correspondence found on a render of the character: {quality['landmarks_kept']} of "
+                     f"{quality['of']} landmarks on its surface, {quality['moved']} moved onto a usable part; "
+                     f"median {quality['median_residual_pct']:g} %, 95 % within {quality['p95_residual_pct']:g} % "
+                     "of the render's width from where MediaPipe put them (check correspondence.json if large).")
     movie = _preview(outdir, take, progress=progress, backend=backend) if preview else None
     if not preview and (outdir / "preview.mp4").is_file():
         movie = outdir / "preview.mp4"  # from an earlier run
@@ -83,6 +90,20 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
                           images={_CAPTIONS[k]: p for k, p in pictures.items()},
                           video=_video_source(movie, embed_video), notes=notes)
     return TakeExtras(report, movie, pictures, numbers)
+
+
+def _correspondence_quality(path: Path) -> dict | None:
+    """The ``quality`` of an automatic correspondence file beside the take (None without one)."""
+    import json
+
+    if not path.is_file():
+        return None
+    try:
+        quality = json.loads(path.read_text(encoding="utf-8")).get("quality")
+    except (OSError, ValueError, AttributeError):
+        return None
+    needed = ("landmarks_kept", "of", "moved", "median_residual_pct", "p95_residual_pct")
+    return quality if isinstance(quality, dict) and all(k in quality for k in needed) else None
 
 
 def _video_source(movie: Path | None, embed: bool) -> str | None:

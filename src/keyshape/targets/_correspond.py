@@ -61,6 +61,10 @@ class Correspondence:
         Barycentric weights, ≥ 0, each row summing to 1.
     n_landmarks : int
         Size of the landmark scheme (478 for MediaPipe, 68 for iBUG).
+    residual : (n_corr,) float or None
+        Found automatically: how far each point lies, on the render it was found on, from where the
+        tracker put its landmark, in picture widths (0 where the landmark's pixel was on the surface;
+        more where it had to move onto a usable part). None for given correspondences.
 
     Examples
     --------
@@ -73,6 +77,7 @@ class Correspondence:
     vertices: np.ndarray
     weights: np.ndarray
     n_landmarks: int
+    residual: np.ndarray | None = None
 
     def __post_init__(self):
         landmarks = np.asarray(self.landmarks, dtype=np.int64).reshape(-1)
@@ -88,12 +93,28 @@ class Correspondence:
             raise InputError("each landmark may correspond to one point only; repeated landmarks")
         if (vertices < 0).any() or (weights < -1e-9).any() or not np.allclose(weights.sum(axis=1), 1):
             raise InputError("correspondence vertices must be >= 0 and weights >= 0 summing to 1 per row")
-        for name, value in (("landmarks", landmarks), ("vertices", vertices), ("weights", weights)):
-            value.flags.writeable = False
+        residual = None if self.residual is None else np.asarray(self.residual, dtype=float).reshape(-1)
+        if residual is not None and (len(residual) != len(landmarks) or not (residual >= 0).all()):
+            raise InputError(f"residual must be {len(landmarks)} numbers >= 0, one per landmark; got {self.residual!r}")
+        for name, value in (("landmarks", landmarks), ("vertices", vertices), ("weights", weights),
+                            ("residual", residual)):
+            if value is not None:
+                value.flags.writeable = False
             object.__setattr__(self, name, value)
         object.__setattr__(self, "n_landmarks", n)
 
     n_corr = property(lambda self: len(self.landmarks))
+
+    def quality(self) -> dict | None:
+        """How well an automatic correspondence holds up: landmarks kept, residual percentiles
+        (% of the render's width); None for a given one."""
+        if self.residual is None:
+            return None
+        pct = 100 * self.residual if self.n_corr else np.zeros(1)
+        return {"landmarks_kept": self.n_corr, "of": self.n_landmarks,
+                "median_residual_pct": round(float(np.median(pct)), 3),
+                "p95_residual_pct": round(float(np.percentile(pct, 95)), 3),
+                "moved": int((pct > 0.5).sum())}
 
     @classmethod
     def from_vertex_ids(cls, ids, *, n_landmarks: int | None = None) -> Correspondence:
@@ -146,7 +167,10 @@ class Correspondence:
                 entries[str(int(landmark))] = int(tri[int(np.argmax(w))])
             else:
                 entries[str(int(landmark))] = {"vertices": tri.tolist(), "weights": np.round(w, 6).tolist()}
-        return {"format": FORMAT, "version": 1, "n_landmarks": self.n_landmarks, "landmarks": entries}
+        document = {"format": FORMAT, "version": 1, "n_landmarks": self.n_landmarks, "landmarks": entries}
+        if self.residual is not None:
+            document["quality"] = self.quality()  # for the report and the reader; ignored when read back
+        return document
 
     def save(self, path) -> Path:
         """Write the JSON file atomically."""

@@ -182,7 +182,10 @@ def _surface_points(pixels: np.ndarray, vertices, faces, camera, size: int) -> C
         triangles[missed], weights[missed] = snap_to_surface(on_screen, flat, faces[seen[usable[seen]]])
     points = np.einsum("cj,cjd->cd", weights, vertices[triangles])
     keep = ~(_collisions(pixels, direct=ok) | _collisions(points, direct=ok))
-    return Correspondence(np.flatnonzero(keep), triangles[keep], weights[keep], len(pixels))
+    # how far each landmark's surface point lies, on the render, from where MediaPipe put it
+    landed = np.einsum("cj,cjd->cd", weights, screen[triangles, :2])
+    residual = np.linalg.norm(landed - pixels, axis=1) / size  # in picture widths
+    return Correspondence(np.flatnonzero(keep), triangles[keep], weights[keep], len(pixels), residual[keep])
 
 
 def _across_a_gap(triangles, weights, found, vertices, faces) -> np.ndarray:

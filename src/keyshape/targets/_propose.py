@@ -70,7 +70,8 @@ def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int, *, front:
                          "found automatically; give a correspondence file (landmark -> vertex)")
     found = find_correspondence(rig.vertices, rig.faces, front=front)
     keep = found.landmarks < n_landmarks
-    return Correspondence(found.landmarks[keep], found.vertices[keep], found.weights[keep], n_landmarks)
+    return Correspondence(found.landmarks[keep], found.vertices[keep], found.weights[keep], n_landmarks,
+                          found.residual[keep])
 
 
 def _as_rig(character) -> Rig:
