@@ -498,3 +498,40 @@ def test_matrix_nodes_become_trs_when_animated():
     edit.as_trs(node)
     assert node.matrix is None and node.scale == pytest.approx([1.0, 2.0, 0.5])
     np.testing.assert_allclose(edit.local_matrix(node), matrix, atol=1e-12)
+
+
+def test_colours_come_from_the_materials(tmp_path):
+    """Base colour factor times the base-colour texture at each vertex's UV: the character as it looks."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    from keyshape.io.gltf import read_colours
+
+    rig = Rig(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]), np.array([[0, 1, 2], [1, 3, 2]]),
+              np.zeros((1, 4, 3)), ("smile",))
+    plain = write_glb(tmp_path / "plain.glb", rig, Weights(np.zeros((0, 1)), rig.names, 30))
+    np.testing.assert_allclose(read_colours(plain), 0.8)  # no material: light grey
+    document = pygltflib.GLTF2().load(str(plain))
+    picture = io.BytesIO()
+    Image.fromarray(np.array([[[255, 0, 0], [0, 0, 255]]], dtype=np.uint8)).save(picture, format="PNG")
+    uv = np.array([[0.25, 0.5], [0.75, 0.5], [0.25, 0.5], [0.75, 0.5]], dtype=np.float32).tobytes()
+    document.buffers.append(pygltflib.Buffer(uri="data:application/octet-stream;base64,"
+                                             + base64.b64encode(uv).decode(), byteLength=len(uv)))
+    document.bufferViews.append(pygltflib.BufferView(buffer=len(document.buffers) - 1, byteOffset=0,
+                                                     byteLength=len(uv)))
+    document.accessors.append(pygltflib.Accessor(bufferView=len(document.bufferViews) - 1, componentType=5126,
+                                                 count=4, type="VEC2"))
+    png = base64.b64encode(picture.getvalue()).decode()
+    document.images.append(pygltflib.Image(uri="data:image/png;base64," + png))
+    document.textures.append(pygltflib.Texture(source=len(document.images) - 1))
+    texture = pygltflib.TextureInfo(index=len(document.textures) - 1)
+    document.materials.append(pygltflib.Material(pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+        baseColorFactor=[0.5, 1.0, 1.0, 1.0], baseColorTexture=texture)))
+    primitive = document.meshes[0].primitives[0]
+    primitive.material = len(document.materials) - 1
+    primitive.attributes.TEXCOORD_0 = len(document.accessors) - 1
+    document.save_binary(str(tmp_path / "painted.glb"))
+    np.testing.assert_allclose(read_colours(tmp_path / "painted.glb"),
+                               [[0.5, 0, 0], [0, 0, 1], [0.5, 0, 0], [0, 0, 1]])

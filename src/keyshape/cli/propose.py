@@ -55,10 +55,15 @@ def run(args) -> None:
     if args.falloff <= 0:
         raise InputError(f"--falloff must be > 0; got {args.falloff}")
     character, source = _character(args)
+    colours = None
+    if source is not None and args.correspondence is None:  # the character as it looks, for the render
+        from ..io.gltf import read_colours
+
+        colours = read_colours(source, meshes=mesh_choice(args.mesh))
     if route == "mapping":
-        _propose_mapping(args, keys, character)
+        _propose_mapping(args, keys, character, colours)
     else:
-        _propose_targets(args, keys, character, source)
+        _propose_targets(args, keys, character, source, colours)
 
 
 def _route(output: Path) -> str:
@@ -83,10 +88,10 @@ def _character(args):
     return load_rig(args.rig, unit=parse_unit(args.rig_unit)), None
 
 
-def _propose_mapping(args, keys, rig) -> None:
+def _propose_mapping(args, keys, rig, colours) -> None:
     from ..targets import propose_mapping, resolve_correspondence
 
-    corr = resolve_correspondence(args.correspondence, rig, keys.n_landmarks, front=args.front)
+    corr = resolve_correspondence(args.correspondence, rig, keys.n_landmarks, front=args.front, colours=colours)
     _save_correspondence(args, corr)
     mapping = propose_mapping(keys, rig, correspondence=corr, normalize=args.normalize)
     mapping.save(args.output)
@@ -99,11 +104,11 @@ def _propose_mapping(args, keys, rig) -> None:
             print(f"  {key}: {shown}")
 
 
-def _propose_targets(args, keys, rig, source) -> None:
+def _propose_targets(args, keys, rig, source, colours) -> None:
     from ..targets import auto_targets
 
     auto = auto_targets(keys, rig, correspondence=args.correspondence, route="transfer", falloff=args.falloff,
-                        front=args.front)
+                        front=args.front, colours=colours)
     _save_correspondence(args, auto.correspondence)
     written = _write_targets(args.output, auto.rig, source, mesh_choice(args.mesh))
     if not args.quiet:

@@ -316,6 +316,73 @@ def read_parts(document, buffers, meshes, path) -> tuple[Rig, list[Part]]:
     return _assemble([b for _, b in blocks.values()], faces), parts
 
 
+def part_colours(document, buffers, meshes, path) -> np.ndarray:
+    """Base colours ``(n_vertices, 3)`` in [0, 1] of the vertices :func:`read_parts` returns, in its order.
+
+    Each vertex takes its primitive's material: ``baseColorFactor``, times the base-colour texture
+    sampled at the vertex's texture coordinates (nearest texel) where the image is PNG or JPEG,
+    times ``COLOR_0`` where given. A primitive without a material is light grey, as the spec's
+    default material is white. Shared vertex blocks take the first primitive's colours.
+    """
+    _check_decodable(document, path)
+    matrices = mesh_matrices(document)
+    seen, colours = set(), []
+    for m in meshes:
+        matrix = matrices.get(m)
+        for primitive in document.meshes[m].primitives:
+            key = (_block_key(primitive), None if matrix is None else matrix.tobytes())
+            if key not in seen:
+                seen.add(key)
+                colours.append(_primitive_colours(document, buffers, primitive, path))
+    return np.vstack(colours) if colours else np.zeros((0, 3))
+
+
+def _primitive_colours(document, buffers, primitive, path) -> np.ndarray:
+    n = read_accessor(document, buffers, primitive.attributes.POSITION).shape[0]
+    if primitive.material is None:
+        return np.full((n, 3), 0.8)
+    pbr = document.materials[primitive.material].pbrMetallicRoughness
+    factor = np.asarray((pbr.baseColorFactor if pbr and pbr.baseColorFactor else [1.0, 1.0, 1.0, 1.0])[:3])
+    colours = np.tile(factor, (n, 1))
+    texture = pbr.baseColorTexture if pbr else None
+    if texture is not None:
+        image = _texture_image(document, buffers, texture.index, path)
+        uv_index = getattr(primitive.attributes, f"TEXCOORD_{texture.texCoord or 0}", None)
+        if image is not None and uv_index is not None:
+            uv = read_accessor(document, buffers, uv_index)
+            height, width = image.shape[:2]
+            column = np.clip((uv[:, 0] % 1.0 * width).astype(int), 0, width - 1)
+            row = np.clip((uv[:, 1] % 1.0 * height).astype(int), 0, height - 1)
+            colours = colours * image[row, column]
+    if getattr(primitive.attributes, "COLOR_0", None) is not None:
+        colours = colours * read_accessor(document, buffers, primitive.attributes.COLOR_0)[:, :3]
+    return np.clip(colours, 0.0, 1.0)
+
+
+def _texture_image(document, buffers, index, path) -> np.ndarray | None:
+    """The texture's image ``(height, width, 3)`` in [0, 1], or None when it cannot be decoded here."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    source = document.textures[index].source if index is not None and index < len(document.textures) else None
+    if source is None:
+        return None
+    image = document.images[source]
+    try:
+        if image.bufferView is not None:
+            view = document.bufferViews[image.bufferView]
+            data = buffers[view.buffer][view.byteOffset or 0:(view.byteOffset or 0) + view.byteLength]
+        elif image.uri:
+            data = read_uri(image.uri, Path(path))
+        else:
+            return None
+        with Image.open(io.BytesIO(bytes(data))) as picture:
+            return np.asarray(picture.convert("RGB"), dtype=float) / 255.0
+    except (OSError, UnidentifiedImageError, InputError, RigError):
+        return None  # a format Pillow does not read (KTX2, WebP without support): base colour only
+
+
 def mesh_matrices(document) -> dict[int, np.ndarray]:
     """``{mesh: (4, 4) float}``: where each mesh sits in the world, for the meshes that move.
 

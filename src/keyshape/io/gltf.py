@@ -63,6 +63,7 @@ from ._gltf_read import (
     load_document,
     mesh_matrices,
     morph_meshes,
+    part_colours,
     read_glb_animation,
     read_parts,
     read_rig,
@@ -71,7 +72,7 @@ from ._gltf_read import (
 from .atomic import atomic_path
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
-           "read_meshes", "eye_nodes", "GlbAnimation", "Part"]
+           "read_meshes", "read_colours", "eye_nodes", "GlbAnimation", "Part"]
 
 ANIMATION = ANIMATION_NAMES[0]
 
@@ -337,6 +338,16 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
     document, buffers = load_document(path, editable=False)
     chosen = _choose_meshes(document, meshes, path)
     return read_parts(document, buffers, chosen, path)
+
+
+def read_colours(path, *, meshes=None) -> np.ndarray:
+    """Base colours ``(n_vertices, 3)`` in [0, 1] of the vertices :func:`read_meshes` returns.
+
+    From each primitive's material (base colour factor, base-colour texture where PNG or JPEG,
+    ``COLOR_0``): what the character looks like, for the renders that find its landmarks.
+    """
+    document, buffers = load_document(path, editable=False)
+    return part_colours(document, buffers, _choose_meshes(document, meshes, path), path)
 
 
 def _choose_meshes(document, meshes, path) -> list[int]:

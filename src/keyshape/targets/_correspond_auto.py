@@ -20,7 +20,8 @@ _VIEWS = (("+z", "+y"), ("-y", "+z"), ("+y", "+z"), ("-z", "+y"), ("+x", "+y"), 
 
 
 def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 640,
-                        backend: str = "auto", front: str = "auto") -> Correspondence:
+                        backend: str = "auto", front: str = "auto",
+                        colours: np.ndarray | None = None) -> Correspondence:
     """MediaPipe's 478 landmarks on a human-like head, found on a front render of its neutral.
 
     The mesh is turned so that its front faces the camera, rendered with an orthographic camera,
@@ -43,6 +44,9 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
         The axis the character's face looks along. "auto" tries +Z (glTF's convention, Y up), then
         −Y and +Y (Z-up exports), −Z, +X and −X, and keeps the first view where MediaPipe finds a
         face.
+    colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
+        What the character looks like (e.g. :func:`keyshape.io.gltf.read_colours`): rendered so, the
+        tracker sees lips, brows and eyes as in a face; default clay.
 
     Returns
     -------
@@ -63,7 +67,7 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
     for axis, up in views:
         vertices_turned = np.asarray(vertices, dtype=float) @ view_rotation(axis, up).T
         camera = frame_points(vertices_turned, margin=1.05)
-        found = _detect(_render(vertices_turned, faces, camera, size, backend))
+        found = _detect(_render(vertices_turned, faces, camera, size, backend, colours))
         if found is not None:
             break
     else:
@@ -73,7 +77,7 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
                        "axis, or give the correspondence as a JSON file (--correspondence)")
     vertices = vertices_turned
     camera = _face_camera(vertices, camera, found, size)
-    closer = _detect(_render(vertices, faces, camera, size, backend))
+    closer = _detect(_render(vertices, faces, camera, size, backend, colours))
     landmarks = closer if closer is not None else found
     camera = camera if closer is not None else frame_points(vertices, margin=1.05)
     return _surface_points(landmarks[:, :2], vertices, faces, camera, size)
@@ -96,8 +100,9 @@ def view_rotation(front: str, up: str) -> np.ndarray:
     return np.stack([np.cross(upward, forward), upward, forward]) + 0.0  # rows: the new x, y, z
 
 
-def _render(vertices, faces, camera, size: int, backend: str) -> np.ndarray:
-    """The clay render, with what is seen through the openings painted dark, as in a real face.
+def _render(vertices, faces, camera, size: int, backend: str, colours=None) -> np.ndarray:
+    """The render (clay, or the character's ``colours``), with what is seen through the openings
+    painted dark, as in a real face.
 
     The renderer shades every surface alike, so the inside of the head seen through an open mouth
     would look like lip to the tracker.
@@ -105,7 +110,7 @@ def _render(vertices, faces, camera, size: int, backend: str) -> np.ndarray:
     from ..render import make_renderer
     from ..render.raster import rasterize
 
-    with make_renderer(faces, size, size, n_vertices=len(vertices), backend=backend) as renderer:
+    with make_renderer(faces, size, size, n_vertices=len(vertices), backend=backend, colours=colours) as renderer:
         picture = renderer.render(vertices, camera)
     screen, in_front = camera.to_screen(vertices, size, size)
     deep = _deep_pixels(vertices, faces, rasterize(screen, faces, size, size, in_front=in_front))

@@ -53,7 +53,8 @@ __all__ = ["AutoTargets", "KeyScores", "auto_targets", "default_character", "pro
 Route = Literal["auto", "transfer", "mapping"]
 
 
-def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int, *, front: str = "auto") -> Correspondence:
+def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int, *, front: str = "auto",
+                           colours: np.ndarray | None = None) -> Correspondence:
     """A :class:`Correspondence` for ``rig`` from an object, a JSON path, or None (found automatically).
 
     None renders the rig's neutral from the front and tracks it with MediaPipe
@@ -68,7 +69,7 @@ def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int, *, front:
     if n_landmarks not in (468, 478):
         raise InputError(f"the key shapes have {n_landmarks} landmarks: only MediaPipe landmarks (478) are "
                          "found automatically; give a correspondence file (landmark -> vertex)")
-    found = find_correspondence(rig.vertices, rig.faces, front=front)
+    found = find_correspondence(rig.vertices, rig.faces, front=front, colours=colours)
     keep = found.landmarks < n_landmarks
     return Correspondence(found.landmarks[keep], found.vertices[keep], found.weights[keep], n_landmarks,
                           found.residual[keep])
@@ -371,7 +372,8 @@ class AutoTargets:
 
 def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route = "auto",
                  unit: float = 1.0, falloff: float = 1.0, normalize: bool = False,
-                 scores: KeyScores | None = None, front: str = "auto") -> AutoTargets:
+                 scores: KeyScores | None = None, front: str = "auto",
+                 colours: np.ndarray | None = None) -> AutoTargets:
     """Propose the character's targets for ``keys`` in one call.
 
     Parameters
@@ -393,6 +395,9 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
     front : str, keyword-only
         The axis the character's face looks along, for the automatic correspondence (see
         :func:`keyshape.targets.find_correspondence`); "auto" looks for it.
+    colours : (n_vertices, 3) float, optional, keyword-only
+        The character's base colours for that render; default: read from a glTF rig path's
+        materials (:func:`keyshape.io.gltf.read_colours`), else clay.
     scores : KeyScores or None, keyword-only
         Mapping route: the tracker's ARKit scores at the key frames (see :func:`propose_mapping`).
         With them, gaze targets (``eyeLook*``) are mapped too, unless the rig is a glTF file whose
@@ -412,7 +417,7 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
     """
     if route not in ("auto", "transfer", "mapping"):
         raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
-    character, corr, rigid = _character(keys, rig, correspondence, unit, front)
+    character, corr, rigid = _character(keys, rig, correspondence, unit, front, colours)
     if route == "mapping" or (route == "auto" and character.n_targets > 0):
         # gaze from the scores too when the eyes turn only through targets (no eye nodes to turn)
         exclude = GAZE_TARGETS if scores is None or _eyes_on_nodes(rig) else ()
@@ -432,15 +437,26 @@ def _eyes_on_nodes(rig) -> bool:
     return False
 
 
-def _character(keys: KeyShapes, rig, correspondence, unit: float, front: str) -> tuple[Rig, Correspondence, tuple]:
+def _character(keys: KeyShapes, rig, correspondence, unit: float, front: str,
+               colours=None) -> tuple[Rig, Correspondence, tuple]:
     """The character, its correspondence and its rigid parts."""
     if rig is None:
         head = stylised_head()
         corr = head.correspondence(keys.n_landmarks) if correspondence is None else correspondence
         return head.rig, resolve_correspondence(corr, head.rig, keys.n_landmarks), ()
     if isinstance(rig, (str, Path)):
+        colours = _colours(Path(rig)) if colours is None else colours
         rig = _load(Path(rig), unit)
-    return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front), ()
+    return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front, colours=colours), ()
+
+
+def _colours(path: Path) -> np.ndarray | None:
+    """The base colours of a glTF character's vertices (as :func:`_load` reads it); None for other files."""
+    if path.suffix.lower() not in (".glb", ".gltf"):
+        return None
+    from ..io.gltf import read_colours
+
+    return read_colours(path)
 
 
 def _load(path: Path, unit: float) -> Rig:
