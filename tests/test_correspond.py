@@ -202,3 +202,20 @@ def test_no_face_on_the_render_is_a_clear_error():
     faces = ConvexHull(sphere).simplices
     with pytest.raises(RigError, match="MediaPipe found no face on a front render"):
         find_correspondence(sphere, faces, size=256)
+
+
+def test_see_through_parts_are_left_out_of_the_render(head):
+    """A transparent visor in front of the face (alpha 0, as an eye overlay or a lash card): not drawn."""
+    rig = head.rig
+    lo, hi = rig.vertices.min(axis=0), rig.vertices.max(axis=0)
+    front = hi[2] + 0.01
+    visor = np.array([[lo[0], lo[1], front], [hi[0], lo[1], front], [hi[0], hi[1], front], [lo[0], hi[1], front]])
+    n = rig.n_vertices
+    vertices = np.vstack([rig.vertices, visor])
+    faces = np.vstack([rig.faces, [[n, n + 1, n + 2], [n, n + 2, n + 3]]])
+    rgba = np.hstack([np.full((len(vertices), 3), 0.8), np.ones((len(vertices), 1))])
+    rgba[n:, 3] = 0.0
+    corr = find_correspondence(vertices, faces, colours=rgba)
+    assert corr.n_corr > 430 and corr.vertices.max() < n  # never on the visor
+    with pytest.raises(RigError, match="found no face"):
+        find_correspondence(vertices, faces, front="+z")  # drawn opaque, the visor hides the face

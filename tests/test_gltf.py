@@ -512,7 +512,7 @@ def test_colours_come_from_the_materials(tmp_path):
     rig = Rig(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]), np.array([[0, 1, 2], [1, 3, 2]]),
               np.zeros((1, 4, 3)), ("smile",))
     plain = write_glb(tmp_path / "plain.glb", rig, Weights(np.zeros((0, 1)), rig.names, 30))
-    np.testing.assert_allclose(read_colours(plain), 0.8)  # no material: light grey
+    np.testing.assert_allclose(read_colours(plain), [[0.8, 0.8, 0.8, 1.0]] * 4)  # no material: light grey, opaque
     document = pygltflib.GLTF2().load(str(plain))
     picture = io.BytesIO()
     Image.fromarray(np.array([[[255, 0, 0], [0, 0, 255]]], dtype=np.uint8)).save(picture, format="PNG")
@@ -534,4 +534,4 @@ def test_colours_come_from_the_materials(tmp_path):
     primitive.attributes.TEXCOORD_0 = len(document.accessors) - 1
     document.save_binary(str(tmp_path / "painted.glb"))
     np.testing.assert_allclose(read_colours(tmp_path / "painted.glb"),
-                               [[0.5, 0, 0], [0, 0, 1], [0.5, 0, 0], [0, 0, 1]])
+                               [[0.5, 0, 0, 1], [0, 0, 1, 1], [0.5, 0, 0, 1], [0, 0, 1, 1]])

@@ -317,12 +317,15 @@ def read_parts(document, buffers, meshes, path) -> tuple[Rig, list[Part]]:
 
 
 def part_colours(document, buffers, meshes, path) -> np.ndarray:
-    """Base colours ``(n_vertices, 3)`` in [0, 1] of the vertices :func:`read_parts` returns, in its order.
+    """Base colours and opacity ``(n_vertices, 4)`` (RGBA in [0, 1]) of the vertices :func:`read_parts`
+    returns, in its order.
 
     Each vertex takes its primitive's material: ``baseColorFactor``, times the base-colour texture
     sampled at the vertex's texture coordinates (nearest texel) where the image is PNG or JPEG,
-    times ``COLOR_0`` where given. A primitive without a material is light grey, as the spec's
-    default material is white. Shared vertex blocks take the first primitive's colours.
+    times ``COLOR_0`` where given. The alpha follows the material's ``alphaMode``: 1 when
+    ``OPAQUE`` (the default), 0 or 1 against ``alphaCutoff`` when ``MASK``, as is when ``BLEND``.
+    A primitive without a material is light grey, as the spec's default material is white.
+    Shared vertex blocks take the first primitive's colours.
     """
     _check_decodable(document, path)
     matrices = mesh_matrices(document)
@@ -334,15 +337,16 @@ def part_colours(document, buffers, meshes, path) -> np.ndarray:
             if key not in seen:
                 seen.add(key)
                 colours.append(_primitive_colours(document, buffers, primitive, path))
-    return np.vstack(colours) if colours else np.zeros((0, 3))
+    return np.vstack(colours) if colours else np.zeros((0, 4))
 
 
 def _primitive_colours(document, buffers, primitive, path) -> np.ndarray:
     n = read_accessor(document, buffers, primitive.attributes.POSITION).shape[0]
     if primitive.material is None:
-        return np.full((n, 3), 0.8)
-    pbr = document.materials[primitive.material].pbrMetallicRoughness
-    factor = np.asarray((pbr.baseColorFactor if pbr and pbr.baseColorFactor else [1.0, 1.0, 1.0, 1.0])[:3])
+        return np.tile([0.8, 0.8, 0.8, 1.0], (n, 1))
+    material = document.materials[primitive.material]
+    pbr = material.pbrMetallicRoughness
+    factor = np.asarray(pbr.baseColorFactor if pbr and pbr.baseColorFactor else [1.0, 1.0, 1.0, 1.0], dtype=float)
     colours = np.tile(factor, (n, 1))
     texture = pbr.baseColorTexture if pbr else None
     if texture is not None:
@@ -355,12 +359,18 @@ def _primitive_colours(document, buffers, primitive, path) -> np.ndarray:
             row = np.clip((uv[:, 1] % 1.0 * height).astype(int), 0, height - 1)
             colours = colours * image[row, column]
     if getattr(primitive.attributes, "COLOR_0", None) is not None:
-        colours = colours * read_accessor(document, buffers, primitive.attributes.COLOR_0)[:, :3]
+        given = read_accessor(document, buffers, primitive.attributes.COLOR_0)
+        colours = colours * (given if given.shape[1] == 4 else np.hstack([given, np.ones((n, 1))]))
+    mode = material.alphaMode or "OPAQUE"
+    if mode == "OPAQUE":
+        colours[:, 3] = 1.0
+    elif mode == "MASK":
+        colours[:, 3] = colours[:, 3] >= (0.5 if material.alphaCutoff is None else material.alphaCutoff)
     return np.clip(colours, 0.0, 1.0)
 
 
 def _texture_image(document, buffers, index, path) -> np.ndarray | None:
-    """The texture's image ``(height, width, 3)`` in [0, 1], or None when it cannot be decoded here."""
+    """The texture's image ``(height, width, 4)`` RGBA in [0, 1], or None when it cannot be decoded here."""
     import io
 
     from PIL import Image, UnidentifiedImageError
@@ -378,7 +388,7 @@ def _texture_image(document, buffers, index, path) -> np.ndarray | None:
         else:
             return None
         with Image.open(io.BytesIO(bytes(data))) as picture:
-            return np.asarray(picture.convert("RGB"), dtype=float) / 255.0
+            return np.asarray(picture.convert("RGBA"), dtype=float) / 255.0
     except (OSError, UnidentifiedImageError, InputError, RigError):
         return None  # a format Pillow does not read (KTX2, WebP without support): base colour only
 

@@ -341,10 +341,10 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
 
 
 def read_colours(path, *, meshes=None) -> np.ndarray:
-    """Base colours ``(n_vertices, 3)`` in [0, 1] of the vertices :func:`read_meshes` returns.
+    """Base colours and opacity ``(n_vertices, 4)`` (RGBA in [0, 1]) of the vertices :func:`read_meshes` returns.
 
     From each primitive's material (base colour factor, base-colour texture where PNG or JPEG,
-    ``COLOR_0``): what the character looks like, for the renders that find its landmarks.
+    ``COLOR_0``, alpha mode): what the character looks like, for the renders that find its landmarks.
     """
     document, buffers = load_document(path, editable=False)
     return part_colours(document, buffers, _choose_meshes(document, meshes, path), path)

@@ -44,9 +44,10 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
         The axis the character's face looks along. "auto" tries +Z (glTF's convention, Y up), then
         −Y and +Y (Z-up exports), −Z, +X and −X, and keeps the first view where MediaPipe finds a
         face.
-    colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
+    colours : (n_vertices, 3) or (n_vertices, 4) float in [0, 1], optional, keyword-only
         What the character looks like (e.g. :func:`keyshape.io.gltf.read_colours`): rendered so, the
-        tracker sees lips, brows and eyes as in a face; default clay.
+        tracker sees lips, brows and eyes as in a face; triangles whose corners are mostly
+        see-through (mean alpha below 0.5: eye overlays, lash cards) are left out; default clay.
 
     Returns
     -------
@@ -60,6 +61,7 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
     """
     from ..render import frame_points
 
+    colours, faces = _seen(colours, np.asarray(faces, dtype=np.int64))
     if front not in FRONTS:
         raise InputError(f"front must be one of {', '.join(FRONTS)}; got {front!r}")
     faces = np.asarray(faces, dtype=np.int64)
@@ -98,6 +100,17 @@ def view_rotation(front: str, up: str) -> np.ndarray:
 
     forward, upward = unit(front), unit(up)
     return np.stack([np.cross(upward, forward), upward, forward]) + 0.0  # rows: the new x, y, z
+
+
+def _seen(colours, faces: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """RGB colours (or None) and the triangles a render shows: none that are mostly see-through."""
+    if colours is None:
+        return None, faces
+    colours = np.asarray(colours, dtype=float)
+    if colours.shape[1] == 4:
+        faces = faces[colours[faces, 3].mean(axis=1) >= 0.5]
+        colours = colours[:, :3]
+    return colours, faces
 
 
 def _render(vertices, faces, camera, size: int, backend: str, colours=None) -> np.ndarray:
