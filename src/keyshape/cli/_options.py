@@ -12,6 +12,7 @@ from ..defaults import (
     DEFAULT_REGIONS,
     DEFAULT_SMOOTHNESS,
     DEFAULT_UPPER,
+    FRONTS,
     MAX_ERROR,
     MAX_KEYS,
 )
@@ -78,7 +79,7 @@ def add_correspondence_option(p, when: str = "") -> None:
     prefixes the help)."""
     p.add_argument("--correspondence", type=Path, default=None, metavar="CORR.json",
                    help=f"{when}landmark -> mesh point file (default: found automatically)")
-    p.add_argument("--front", choices=("auto", "+z", "-z", "+x", "-x", "+y", "-y"), default="auto", metavar="AXIS",
+    p.add_argument("--front", choices=FRONTS, default="auto", metavar="AXIS",
                    help=f"{when}the axis the character's face looks along, for the automatic correspondence: "
                         "+z (glTF), -y (Z-up exports), ...; default auto: tried in turn until MediaPipe finds "
                         "the face")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..defaults import FRONTS
 from ..exceptions import InputError, RigError
 from ..mesh import mesh_components, snap_to_surface
 from ._correspond import Correspondence
@@ -14,7 +15,6 @@ from ._correspond import Correspondence
 __all__ = ["find_correspondence", "view_rotation", "FRONTS"]
 
 
-FRONTS = ("auto", "+z", "-z", "+x", "-x", "+y", "-y")
 # the views "auto" tries, in order: (the axis the face looks along, the axis up the face)
 _VIEWS = (("+z", "+y"), ("-y", "+z"), ("+y", "+z"), ("-z", "+y"), ("+x", "+y"), ("-x", "+y"))
 
