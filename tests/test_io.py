@@ -81,13 +81,12 @@ def test_not_a_key_file(tmp_path):
         load_keys(tmp_path / "k.json")
 
 
-def test_failed_write_leaves_nothing(tmp_path):
-    class Boom(Weights):
-        @property
-        def times(self):
-            raise RuntimeError("disk full")
+def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
+    def boom(value):
+        raise RuntimeError("disk full")
 
-    w = Boom(np.zeros((2, 1)), ("a",), 30)
+    monkeypatch.setattr("keyshape.io.weights_csv._cell", boom)
+    w = Weights(np.zeros((2, 1)), ("a",), 30)
     with pytest.raises(RuntimeError):
         save_weights_csv(w, tmp_path / "w.csv")
     assert list(tmp_path.iterdir()) == []

@@ -49,6 +49,23 @@ def blend(base: np.ndarray, deltas: np.ndarray, weights: np.ndarray) -> np.ndarr
     return base[None] + np.einsum("fk,kpd->fpd", weights, deltas)
 
 
+def _frame_clock(n_frames: int, fps: float, frame_index, time) -> tuple[np.ndarray, np.ndarray]:
+    """(frame_index (n_frames,) int, time (n_frames,) float), checked; defaults from ``fps``."""
+    if frame_index is None:
+        index = np.arange(n_frames, dtype=np.int64)
+    else:
+        index = np.asarray(frame_index)
+        if index.shape != (n_frames,) or not (np.issubdtype(index.dtype, np.integer) or index.size == 0):
+            raise InputError(f"frame_index must be ({n_frames},) int; got shape {index.shape}, {index.dtype}")
+        if n_frames and (index[0] < 0 or (np.diff(index) <= 0).any()):
+            raise InputError("frame_index must be >= 0 and strictly increasing")
+    seconds = index / fps if time is None else np.asarray(time, dtype=float)
+    if seconds.shape != (n_frames,) or not np.isfinite(seconds).all() or (np.diff(seconds) <= 0).any():
+        raise InputError(f"time must be ({n_frames},) finite seconds, strictly increasing; got shape "
+                         f"{seconds.shape}")
+    return _frozen(index, dtype=np.int64), _frozen(seconds)
+
+
 @dataclass(frozen=True, eq=False)
 class Track:
     """A landmark performance.
@@ -64,6 +81,12 @@ class Track:
     blendshape_names : tuple of str
     head_matrix : (n_frames, 4, 4) float or None
         MediaPipe's facial transformation matrix, NaN where no face.
+    frame_index : (n_frames,) int
+        The source video's frame number of each row (``--start 24``: 24, 25, ...); default
+        0, 1, ...; strictly increasing.
+    time : (n_frames,) float
+        The source's presentation time of each row in seconds (variable frame rate clips keep
+        their real timing); default ``frame_index / fps``; strictly increasing.
     """
 
     points: np.ndarray
@@ -72,6 +95,8 @@ class Track:
     blendshapes: np.ndarray | None = None
     blendshape_names: tuple[str, ...] = ()
     head_matrix: np.ndarray | None = None
+    frame_index: np.ndarray | None = None
+    time: np.ndarray | None = None
 
     def __post_init__(self):
         points = np.asarray(self.points, dtype=float)
@@ -82,12 +107,15 @@ class Track:
         fps = float(self.fps)
         if not np.isfinite(fps) or fps <= 0:
             raise InputError(f"fps must be a positive number; got {self.fps!r}")
-        # A frame is either fully present or fully missing.
-        partial = np.isnan(points).any(axis=(1, 2))
+        # A frame is either fully present or fully missing; inf is missing as NaN is.
+        partial = ~np.isfinite(points).all(axis=(1, 2))
         points = points.copy()
         points[partial] = np.nan
         object.__setattr__(self, "points", _frozen(points))
         object.__setattr__(self, "fps", fps)
+        index, time = _frame_clock(points.shape[0], fps, self.frame_index, self.time)
+        object.__setattr__(self, "frame_index", index)
+        object.__setattr__(self, "time", time)
         if self.image_size is not None:
             object.__setattr__(self, "image_size", tuple(int(v) for v in self.image_size))
         if self.blendshapes is not None:
@@ -117,14 +145,13 @@ class Track:
 
     @property
     def times(self) -> np.ndarray:
-        """(n_frames,) float: seconds from the first frame."""
-        return np.arange(self.n_frames) / self.fps
+        """(n_frames,) float: seconds from the first frame (``time - time[0]``)."""
+        return self.time - self.time[0] if self.n_frames else self.time
 
     def with_points(self, points: np.ndarray) -> Track:
         """The same take with other landmark positions (e.g. aligned ones)."""
-        return Track(
-            points, self.fps, self.image_size, self.blendshapes, self.blendshape_names, self.head_matrix
-        )
+        return Track(points, self.fps, self.image_size, self.blendshapes, self.blendshape_names,
+                     self.head_matrix, self.frame_index, self.time)
 
     def __getitem__(self, frames: slice) -> Track:
         """The frames ``frames`` (a slice) of the take, with their scores and head matrices."""
@@ -132,7 +159,8 @@ class Track:
             raise TypeError(f"a Track is sliced by frames, e.g. track[10:50]; got {frames!r}")
         pick = lambda a: None if a is None else a[frames]  # noqa: E731
         return Track(self.points[frames], self.fps, self.image_size, pick(self.blendshapes),
-                     self.blendshape_names, pick(self.head_matrix))
+                     self.blendshape_names, pick(self.head_matrix), self.frame_index[frames],
+                     self.time[frames])
 
     def __repr__(self) -> str:
         return (
@@ -272,11 +300,15 @@ class Weights:
     values : (n_frames, n_channels) float, NaN in frames with no estimate
     names : tuple of n_channels str
     fps : float
+    frame_index : (n_frames,) int, the source frame of each row (as :class:`Track`'s)
+    time : (n_frames,) float, the source time of each row in seconds (as :class:`Track`'s)
     """
 
     values: np.ndarray
     names: tuple[str, ...]
     fps: float
+    frame_index: np.ndarray | None = None
+    time: np.ndarray | None = None
 
     def __post_init__(self):
         values = np.asarray(self.values, dtype=float)
@@ -286,19 +318,26 @@ class Weights:
                 f"weights must have shape (n_frames, {len(names)}) for {len(names)} names; "
                 f"got {values.shape}"
             )
-        if float(self.fps) <= 0:
+        if not float(self.fps) > 0 or not np.isfinite(float(self.fps)):
             raise InputError(f"fps must be a positive number; got {self.fps!r}")
         object.__setattr__(self, "values", _frozen(values))
         object.__setattr__(self, "names", names)
         object.__setattr__(self, "fps", float(self.fps))
+        index, time = _frame_clock(values.shape[0], float(self.fps), self.frame_index, self.time)
+        object.__setattr__(self, "frame_index", index)
+        object.__setattr__(self, "time", time)
 
     n_frames = property(lambda self: self.values.shape[0])
     n_channels = property(lambda self: self.values.shape[1])
 
     @property
     def times(self) -> np.ndarray:
-        """(n_frames,) float: seconds from the first frame."""
-        return np.arange(self.n_frames) / self.fps
+        """(n_frames,) float: seconds from the first frame (``time - time[0]``)."""
+        return self.time - self.time[0] if self.n_frames else self.time
+
+    def with_values(self, values: np.ndarray, names) -> Weights:
+        """Other channels over the same frames (same rate, frame numbers and times)."""
+        return Weights(values, names, self.fps, self.frame_index, self.time)
 
     def __repr__(self) -> str:
         return f"Weights(n_frames={self.n_frames}, n_channels={self.n_channels}, fps={self.fps:g})"

@@ -12,6 +12,11 @@ class InputError(KeyshapeError, ValueError):
     """A file or argument is missing, unreadable or of the wrong shape."""
 
 
+class UsageError(InputError):
+    """A command-line argument that is wrong for the input it is given (``--neutral 999`` on a
+    472-frame take): the command line reports it as argparse does, with exit code 2."""
+
+
 class NoFaceError(KeyshapeError):
     """A video in which the tracker found no face at all."""
 
@@ -26,6 +31,16 @@ class MissingDependencyError(KeyshapeError, ImportError):
     def __init__(self, package: str, extra: str | None = None):
         hint = f'pip install "keyshape[{extra}]"' if extra else f"pip install {package}"
         super().__init__(f"{package} is required for this feature: {hint}")
+
+
+class InputWarning(UserWarning):
+    """An input is incomplete but usable (a video that ends before the frame count its container
+    declares, a take whose video is gone); the command line prints it as one line."""
+
+
+class Terminated(BaseException):
+    """The process was asked to stop (SIGTERM); raised like KeyboardInterrupt, so every temporary
+    file and staging folder is removed on the way out."""
 
 
 class DegenerateFrameWarning(UserWarning):

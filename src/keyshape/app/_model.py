@@ -92,7 +92,7 @@ class KeyShapeModel:
     def inverse_transform(self, weights: Weights) -> Track:
         """The key set's shapes at ``weights`` (canonical, head removed): ``neutral + Σ w_k deltas_k``."""
         keys = self._fitted()
-        return Track(keys.pose(weights.values), weights.fps)
+        return Track(keys.pose(weights.values), weights.fps, frame_index=weights.frame_index, time=weights.time)
 
     def _fitted(self) -> KeyShapes:
         if not hasattr(self, "keyshapes_"):

@@ -153,7 +153,7 @@ def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMO
                                            convex=convex).values
     if smoothness > 0:
         values = hold_neutral(values, gaps)
-    weights = Weights(values, keys.names, track.fps)
+    weights = Weights(values, keys.names, track.fps, track.frame_index, track.time)
     gaze = estimate_gaze(aligned.points, reference=keys.neutral) if track.n_landmarks == 478 else None
     return Solved(weights, poses, aligned, gaps, gaze)
 
@@ -201,7 +201,8 @@ def arkit_scores(track: Track, *, source: str | Path = "track") -> Weights:
     if track.blendshapes is None or not track.blendshape_names:
         raise InputError(f"{source}: has no blendshape scores (tracks from `keyshape track` do)")
     keep = [i for i, n in enumerate(track.blendshape_names) if not n.startswith("_")]
-    return Weights(track.blendshapes[:, keep], [track.blendshape_names[i] for i in keep], track.fps)
+    return Weights(track.blendshapes[:, keep], [track.blendshape_names[i] for i in keep], track.fps,
+                   track.frame_index, track.time)
 
 
 def key_scores(keys: KeyShapes, track: Track):

@@ -9,6 +9,7 @@ same but streams the results to disk, so memory stays flat however long the vide
 from __future__ import annotations
 
 import tempfile
+import warnings
 from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -18,7 +19,7 @@ from typing import Self
 import numpy as np
 
 from ..containers import Track
-from ..exceptions import InputError, NoFaceError
+from ..exceptions import InputError, InputWarning, NoFaceError
 from .mediapipe import Detection, MediaPipeTracker, TrackerOptions, default_model_path
 from .video import VideoInfo, iter_frames, prefetch, probe
 
@@ -74,11 +75,14 @@ class _Frame:
     points: np.ndarray  # (478, 3) float32, NaN if no face
     scores: np.ndarray  # (52,) float32
     matrix: np.ndarray  # (4, 4) float32
+    index: int = 0  # the source frame number
+    ms: int = 0  # its presentation time in milliseconds
+    n_seen: int = 0  # faces the tracker saw in it (anyone's)
 
 
-def _nan_frame() -> _Frame:
+def _nan_frame(index: int = 0, ms: int = 0, n_seen: int = 0) -> _Frame:
     return _Frame(np.full((N_LANDMARKS, 3), np.nan, np.float32), np.full(N_SCORES, np.nan, np.float32),
-                  np.full((4, 4), np.nan, np.float32))
+                  np.full((4, 4), np.nan, np.float32), index, ms, n_seen)
 
 
 def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, start: int,
@@ -97,18 +101,20 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
     follower = FaceFollower(face)
     with MediaPipeTracker(options) as tracker:
         source = prefetch(iter_frames(path, start=start, end=end, fps=fps))
-        for ms, rgb in tqdm(source, total=total if total > 0 else None, unit="frame",
-                            desc=f"track {path.name}", disable=not progress, leave=False,
-                            dynamic_ncols=True):
-            chosen = follower.pick(tracker.detect(rgb, ms))
+        # disable=None: a bar only when stderr is a terminal, never in a log
+        for index, (ms, rgb) in enumerate(tqdm(source, total=total if total > 0 else None, unit="frame",
+                                               desc=f"track {path.name}", disable=None if progress else True,
+                                               leave=False, dynamic_ncols=True), start=start):
+            faces = tracker.detect(rgb, ms)
+            chosen = follower.pick(faces)
             if chosen is None or len(chosen.scores) != N_SCORES:
                 if smooth is not None:
                     smooth(np.full(1, np.nan))  # a gap restarts the filter
-                yield _nan_frame()
+                yield _nan_frame(index, ms, len(faces))
             else:
                 points = smooth(chosen.points) if smooth is not None else chosen.points
                 yield _Frame(points.astype(np.float32), chosen.scores.astype(np.float32),
-                             chosen.matrix.astype(np.float32))
+                             chosen.matrix.astype(np.float32), index, ms, len(faces))
 
 
 def _check_range(start: int, end: int | None) -> None:
@@ -131,12 +137,23 @@ class _Spool:
         self._open = ExitStack()
         self.n_frames = 0
         self.n_faces = 0
+        self.most_seen = 0  # the most faces seen in one frame
+        self.index: list[int] = []  # source frame numbers (16 bytes a frame with the times)
+        self.ms: list[int] = []
 
     def append(self, frame: _Frame) -> None:
         for name, fh in self.files.items():
             fh.write(np.ascontiguousarray(getattr(frame, name)).tobytes())
         self.n_frames += 1
         self.n_faces += bool(np.isfinite(frame.points[0, 0]))
+        self.most_seen = max(self.most_seen, frame.n_seen)
+        self.index.append(frame.index)
+        self.ms.append(frame.ms)
+
+    def clock(self) -> dict[str, np.ndarray]:
+        """``frame_index`` (n_frames,) int and ``time`` (n_frames,) seconds."""
+        return {"frame_index": np.array(self.index, dtype=np.int64),
+                "time": np.array(self.ms, dtype=np.float64) / 1000.0}
 
     def __enter__(self) -> Self:
         with ExitStack() as stack:  # a failed open closes the ones before it
@@ -158,15 +175,40 @@ class _Spool:
 def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
            one_euro: dict | None = None) -> tuple[_Spool, VideoInfo]:
     _check_range(start, end)
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"fps must be a finite number > 0; got {fps!r}")
     path = Path(path)
     info = probe(path, fps=fps)
+    if info.n_frames and start >= info.n_frames:
+        raise InputError(f"{path}: start frame {start} is past its end (it has {info.n_frames} frames, "
+                         f"0..{info.n_frames - 1})")
     with _Spool(folder) as spool:
         for frame in _frames(path, info, options=options, start=start, end=end, fps=fps, face=face,
                              progress=progress, one_euro=one_euro):
             spool.append(frame)
+    if spool.n_frames == 0:
+        raise InputError(f"{path}: no frame from frame {start} on (the video ends before it)")
+    _warn_if_truncated(path, info, start + spool.n_frames, end)
     if spool.n_faces == 0:
-        raise NoFaceError(f"{path}: no face found in any of its {spool.n_frames} frames")
+        raise NoFaceError(_no_face_message(path, spool, face))
     return spool, info
+
+
+def _no_face_message(path: Path, spool: _Spool, face: int) -> str:
+    if face > 0 and spool.most_seen > 0:
+        ordinal = {1: "2nd", 2: "3rd"}.get(face, f"{face + 1}th")
+        return (f"{path}: no {ordinal} face to follow (face={face}): at most {spool.most_seen} "
+                f"{'face was' if spool.most_seen == 1 else 'faces were'} seen in any of its {spool.n_frames} frames")
+    return f"{path}: no face found in any of its {spool.n_frames} frames"
+
+
+def _warn_if_truncated(path: Path, info: VideoInfo, decoded: int, end: int | None) -> None:
+    """Warn when the video ends well before the frame count its container declares."""
+    wanted = info.n_frames if end is None else min(end, info.n_frames)
+    if info.n_frames and wanted - decoded > max(2, 0.01 * info.n_frames):
+        warnings.warn(f"{path}: only {decoded} frames could be decoded but its container declares "
+                      f"{info.n_frames}: the file may be truncated, and the track ends at frame {decoded - 1}",
+                      InputWarning, stacklevel=3)
 
 
 def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,
@@ -199,8 +241,9 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
                              progress=progress, folder=Path(tmp), one_euro=one_euro)
         arrays = spool.arrays()
+        clock = spool.clock()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
-                      _blendshape_names(), arrays["matrix"])
+                      _blendshape_names(), arrays["matrix"], clock["frame_index"], clock["time"])
         del arrays
     return track
 
@@ -223,7 +266,8 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
         arrays = spool.arrays()
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],
-                           blendshape_names=_blendshape_names(), head_matrix=arrays["matrix"])
+                           blendshape_names=_blendshape_names(), head_matrix=arrays["matrix"],
+                           **spool.clock())
         del arrays
     return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "fps": info.fps,
             "image_size": (info.width, info.height)}

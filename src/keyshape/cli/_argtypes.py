@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
 
-__all__ = ["bound", "non_negative", "positive", "whole"]
+__all__ = ["bound", "non_negative", "positive", "whole", "regions"]
 
 
 def _number(text: str) -> float:
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"must be a number; got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number; got {text!r}")
+    return value
 
 
 def bound(text: str) -> float | None:
@@ -41,16 +46,33 @@ def positive(text: str) -> float:
     return value
 
 
-def whole(low: int, high: int):
-    """A whole number in ``low..high``."""
+def whole(low: int, high: int | None = None):
+    """A whole number in ``low..high`` (``high=None``: no upper limit). The limits are kept on the
+    parser (``.limits``), and the help formatter states them in ``--help``."""
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}") from None
-        if not low <= value <= high:
+        if value < low or (high is not None and value > high):
+            if high is None:
+                raise argparse.ArgumentTypeError(f"must be >= {low}; got {value}")
             raise argparse.ArgumentTypeError(f"must be between {low} and {high}; got {value}")
         return value
 
+    parse.__name__ = "whole number"  # argparse's "invalid <name> value" if ever shown
+    parse.limits = (low, high)
     return parse
+
+
+def regions(text: str) -> str | Path:
+    """A built-in region scheme's name or an existing REGIONS.json."""
+    from ..schemes import REGION_SCHEMES
+
+    if text in REGION_SCHEMES:
+        return text
+    if Path(text).is_file():
+        return Path(text)
+    raise argparse.ArgumentTypeError(f"{text!r} is neither a scheme ({', '.join(REGION_SCHEMES)}) nor an "
+                                     "existing REGIONS.json file")

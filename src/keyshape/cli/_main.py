@@ -5,7 +5,11 @@ define ``check(parser, args)`` for usage errors argparse cannot see, and ``EPILO
 :data:`VERBS` gives each verb's module and one-line help, so ``keyshape --help`` lists every verb
 without importing any of them.
 
-Exit codes: 0 success, 2 usage error, 1 any other error (one line; ``--debug`` for the traceback).
+Exit codes: 0 success, 2 usage error (argparse's, or a :class:`~keyshape.exceptions.UsageError`:
+an argument wrong for its input, an output that would overwrite an input), 1 any other error (one
+line; ``--debug`` for the traceback), 130 on Ctrl-C and 143 on SIGTERM (both remove every
+temporary file on the way out). Warnings meant for the user
+(:class:`~keyshape.exceptions.InputWarning`) are printed as one line each.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import sys
 from importlib import import_module
 
 from .. import __version__
-from ..exceptions import KeyshapeError
+from ..exceptions import InputWarning, KeyshapeError, Terminated, UsageError
 from ._options import formatter
 
 DESCRIPTION = """\
@@ -82,7 +86,7 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
                                description=getattr(module, "DESCRIPTION", help_line),
                                epilog=getattr(module, "EPILOG", None))
             module.add_arguments(p)
-            p.set_defaults(module=module)
+            p.set_defaults(module=module, parser=p)
         else:
             sub.add_parser(name, help=help_line, add_help=False)
     return parser
@@ -114,14 +118,30 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser(_chosen_verb(argv) or "")
     args = parser.parse_args(argv)
     module = args.module
+    if hasattr(args, "start"):  # the capture options
+        from ._options import check_frame_range
+
+        check_frame_range(args.parser, args)
     if hasattr(module, "check"):
         module.check(parser, args)
     try:
-        with _blas_threads():
+        with _blas_threads(), _terminate_as_interrupt(), _one_line_warnings():
+            from ._paths import check_outputs
+
+            check_outputs(args.verb, args)
             module.run(args)
     except KeyboardInterrupt:
         print("keyshape: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print("keyshape: terminated", file=sys.stderr)
+        return 143
+    except UsageError as exc:
+        if args.debug:
+            raise
+        args.parser.print_usage(sys.stderr)
+        print(f"keyshape {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
     except KeyshapeError as exc:
         if args.debug:
             raise
@@ -134,3 +154,51 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 1
     return 0
+
+
+def _terminate_as_interrupt():
+    """SIGTERM raises :class:`Terminated` in the main thread, as Ctrl-C raises KeyboardInterrupt,
+    so ``finally`` blocks and context managers remove temporaries (``timeout``, ``kill``, a
+    scheduler stopping a job). The previous handler is restored afterwards."""
+    import contextlib
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return contextlib.nullcontext()
+
+    def raise_terminated(signum, frame):
+        raise Terminated()
+
+    @contextlib.contextmanager
+    def installed():
+        previous = signal.signal(signal.SIGTERM, raise_terminated)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+
+    return installed()
+
+
+def _one_line_warnings():
+    """Print :class:`InputWarning` as ``keyshape: warning: ...``, once per message."""
+    import contextlib
+    import warnings
+
+    @contextlib.contextmanager
+    def shown():
+        with warnings.catch_warnings():
+            warnings.simplefilter("default", InputWarning)
+            original = warnings.showwarning
+
+            def show(message, category, filename, lineno, file=None, line=None):
+                if issubclass(category, InputWarning):
+                    print(f"keyshape: warning: {message}", file=sys.stderr, flush=True)
+                else:
+                    original(message, category, filename, lineno, file, line)
+
+            warnings.showwarning = show
+            yield
+
+    return shown()

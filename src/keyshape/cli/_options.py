@@ -17,15 +17,33 @@ from ..defaults import (
     MAX_KEYS,
 )
 from ..exceptions import InputError
-from ._argtypes import bound, non_negative, positive, whole
+from ._argtypes import bound, non_negative, positive, regions, whole
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """States the limits of every whole-number option (its type's ``limits``) in ``--help``."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        limits = getattr(action.type, "limits", None)
+        if limits is not None and "%(default)" not in text:
+            low, high = limits
+            text += f" [{low}..{high}]" if high is not None else f" [>= {low}]"
+        return text
 
 
 def formatter(prog):
-    return argparse.RawDescriptionHelpFormatter(prog, max_help_position=32)
+    return _Formatter(prog, max_help_position=32)
+
+
+COUNT_LIMIT = 64  # largest --count per region
 
 
 def _count(text: str) -> int | str:
-    return "auto" if text == "auto" else whole(1, 64)(text)
+    return "auto" if text == "auto" else whole(1, COUNT_LIMIT)(text)
+
+
+_count.limits = (1, COUNT_LIMIT)
 
 
 def add_key_options(p: argparse.ArgumentParser) -> None:
@@ -39,22 +57,23 @@ def add_key_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-error", type=positive, default=MAX_ERROR, metavar="PCT",
                    help=f"target of --count auto: RMS reconstruction error in %% of the "
                         f"inter-ocular distance (default {MAX_ERROR:g})")
-    p.add_argument("--regions", default=DEFAULT_REGIONS, metavar="SCHEME",
+    p.add_argument("--regions", type=regions, default=DEFAULT_REGIONS, metavar="SCHEME",
                    help="upper-lower (brows+eyes / mouth+jaw, default), whole, eyes "
                         "(brows / left eye / right eye / mouth), or a REGIONS.json mapping region "
                         "names to landmark indices")
-    p.add_argument("--neutral", type=int, default=None, metavar="FRAME",
+    p.add_argument("--neutral", type=whole(0), default=None, metavar="FRAME",
                    help="the neutral (resting) frame; default: chosen automatically as the frame "
                         "closest to the median aligned shape")
 
 
 def add_capture_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--start", type=int, default=0, metavar="FRAME", help="first frame to track (default 0)")
-    p.add_argument("--end", type=int, default=None, metavar="FRAME",
+    p.add_argument("--start", type=whole(0), default=0, metavar="FRAME", help="first frame to track (default 0)")
+    p.add_argument("--end", type=whole(1), default=None, metavar="FRAME",
                    help="stop before this frame (default: the last frame)")
-    p.add_argument("--fps", type=float, default=None,
-                   help="frame rate override (image folders default to 30)")
-    p.add_argument("--face", type=int, default=0, metavar="N",
+    p.add_argument("--fps", type=positive, default=None,
+                   help="frame rate override (image folders default to 30); frames are then timed "
+                        "at i / FPS instead of by the video's own timestamps")
+    p.add_argument("--face", type=whole(0, 16), default=0, metavar="N",
                    help="which person to follow when several are visible: 0 = the largest face at "
                         "the start (default), 1 = the next largest, ...")
     p.add_argument("--one-euro", nargs="?", const="1.0,0.05", default=None, metavar="MINCUT,BETA",
@@ -146,3 +165,10 @@ def describe_keys(keys) -> str:
     where = [f"{t}:{f}" if several else str(f) for t, f in zip(keys.takes, keys.frames)]
     parts = [f"{r}: frames {', '.join(where[k] for k in keys.keys_of(r))}" for r in keys.regions]
     return "; ".join(parts)
+
+
+def check_frame_range(parser, args) -> None:
+    """``--start`` before ``--end`` (a usage error, exit code 2, before any work)."""
+    end = getattr(args, "end", None)
+    if end is not None and end <= args.start:
+        parser.error(f"--end must be after --start; got --start {args.start} --end {end}")

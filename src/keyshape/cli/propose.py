@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..exceptions import InputError
+from ._argtypes import positive
 from ._options import add_correspondence_option, add_normalize_option, add_rig_options, mesh_choice
 
 DESCRIPTION = (
@@ -39,7 +40,7 @@ def add_arguments(p) -> None:
                    help="also write the correspondence used, to check or edit it")
     add_rig_options(p, meshes="to propose targets on")
     add_normalize_option(p)
-    p.add_argument("--falloff", type=float, default=1.0,
+    p.add_argument("--falloff", type=positive, default=1.0,
                    help="transfer: how far motion spreads beyond the moving landmarks, in face radii (default 1)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
                    help="MAP.json (mapping route), .glb or a folder (transfer route)")
@@ -52,8 +53,6 @@ def run(args) -> None:
     route = _route(args.output)
     if route == "mapping" and args.rig is None:
         raise InputError("a mapping needs --rig: a rig with blendshapes of its own")
-    if args.falloff <= 0:
-        raise InputError(f"--falloff must be > 0; got {args.falloff}")
     character, source = _character(args)
     colours = None
     if source is not None and args.correspondence is None:  # the character as it looks, for the render

@@ -19,8 +19,9 @@ def add_arguments(p) -> None:
 
 def run(args) -> None:
     from ..report import write_take_extras
+    from ._options import progress
 
-    extras = write_take_extras(args.outdir, progress=not args.quiet, preview=not args.no_preview,
+    extras = write_take_extras(args.outdir, progress=progress(args), preview=not args.no_preview,
                                backend=args.backend)
     if not args.quiet:
         n = extras.numbers

@@ -35,7 +35,7 @@ def add_arguments(p) -> None:
                    help="upper-lower (default), whole, eyes, or a REGIONS.json")
     p.add_argument("--max-k", type=whole(1, 200), default=30, metavar="K",
                    help="largest number of key shapes per region (default 30)")
-    p.add_argument("--neutral", type=int, default=None, metavar="FRAME",
+    p.add_argument("--neutral", type=whole(0), default=None, metavar="FRAME",
                    help="the neutral frame; default: chosen automatically as in `keyshape keys`")
     p.add_argument("--max", type=bound, default=DEFAULT_UPPER, metavar="U",
                    help=f"upper bound of the weights in the fits (default {DEFAULT_UPPER:g}, as "

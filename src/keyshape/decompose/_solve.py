@@ -214,7 +214,7 @@ def solve_weights(
             values[:, ks] = _solve_region(A, B, upper[ks], smoothness, bool(convex), tol)
     if smoothness == 0.0:
         values[~track.valid] = np.nan
-    return Weights(values, keys.names, track.fps)
+    return Weights(values, keys.names, track.fps, track.frame_index, track.time)
 
 
 def _region_system(track, keys, landmarks, ks):

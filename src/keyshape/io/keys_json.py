@@ -20,6 +20,7 @@ import numpy as np
 from ..containers import KeyShapes
 from ..exceptions import InputError
 from .atomic import atomic_path, existing_file
+from .validate import check_keys_data
 
 __all__ = ["save_keys", "load_keys", "keys_to_dict", "keys_from_dict"]
 
@@ -90,8 +91,7 @@ def load_keys(path: str | Path) -> KeyShapes:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise InputError(f"{path}: not a readable JSON key file ({exc.__class__.__name__})") from None
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise InputError(f"{path}: not a keyshape key file (expected \"format\": \"{FORMAT}\")")
+    check_keys_data(path, data)
     try:
         return keys_from_dict(data)
     except (KeyError, TypeError, ValueError) as exc:

@@ -11,10 +11,11 @@ import json
 from pathlib import Path
 
 from ..containers import KeyShapes, Track
-from ..exceptions import InputError
+from ..exceptions import InputError, InputWarning
 from .atomic import atomic_path
+from .validate import check_take_info
 
-__all__ = ["save_take_info", "load_take_info", "TAKE_FILES"]
+__all__ = ["save_take_info", "load_take_info", "take_video", "TAKE_FILES"]
 
 TAKE_FILES = {"track": "track.npz", "keys": "keys.json", "weights": "weights.csv",
               "animation": "animation.glb"}
@@ -39,8 +40,22 @@ def load_take_info(folder: str | Path) -> dict:
         raise InputError(f"{folder}: no take.json here; is it an output folder of `keyshape run`?")
     try:
         info = json.loads(path.read_text())
-    except ValueError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
-    if info.get("format") != "keyshape-take":
-        raise InputError(f"{path}: not a keyshape take description")
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc.__class__.__name__}: {exc})") from None
+    check_take_info(path, info)
     return info
+
+
+def take_video(folder: str | Path, info: dict) -> Path | None:
+    """The take's source video, or None, with an :class:`~keyshape.exceptions.InputWarning`
+    when ``take.json`` names a video that is gone (the pictures then lack the actor)."""
+    import warnings
+
+    if not info.get("video"):
+        return None
+    video = Path(info["video"])
+    if video.is_file():
+        return video
+    warnings.warn(f"{Path(folder) / 'take.json'}: its video {str(video)!r} is not found: the landmarks are "
+                  "drawn without the actor", InputWarning, stacklevel=2)
+    return None

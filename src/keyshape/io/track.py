@@ -1,9 +1,13 @@
 """Track files (``.npz``): ``points`` (n_frames, n_landmarks, 2|3) and ``fps``, plus optional
-``image_size``, ``blendshapes`` + ``blendshape_names`` and ``head_matrix`` (DESIGN.md)."""
+``frame_index`` (n_frames,) source frame numbers, ``time`` (n_frames,) source times in seconds,
+``image_size``, ``blendshapes`` + ``blendshape_names`` and ``head_matrix`` (DESIGN.md). Files
+written before ``frame_index`` and ``time`` existed still load: their frames count from 0 at
+``fps``. Every file read is checked by :func:`keyshape.io.validate.check_track_arrays`."""
 
 from __future__ import annotations
 
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +15,7 @@ import numpy as np
 from ..containers import Track
 from ..exceptions import InputError
 from .atomic import atomic_path, existing_file
+from .validate import check_track_arrays
 
 __all__ = ["save_track", "load_track"]
 
@@ -21,18 +26,23 @@ def save_track(track: Track, path: str | Path) -> Path:
     """Write ``track`` to ``path`` (.npz), atomically."""
     return write_track_arrays(path, points=track.points, fps=track.fps, image_size=track.image_size,
                               blendshapes=track.blendshapes, blendshape_names=track.blendshape_names,
-                              head_matrix=track.head_matrix)
+                              head_matrix=track.head_matrix, frame_index=track.frame_index, time=track.time)
 
 
 def write_track_arrays(path: str | Path, *, points: np.ndarray, fps: float,
                        image_size: tuple[int, int] | None = None, blendshapes: np.ndarray | None = None,
-                       blendshape_names: tuple[str, ...] = (), head_matrix: np.ndarray | None = None) -> Path:
+                       blendshape_names: tuple[str, ...] = (), head_matrix: np.ndarray | None = None,
+                       frame_index: np.ndarray | None = None, time: np.ndarray | None = None) -> Path:
     """Write track arrays (memory maps welcome: they are streamed in chunks), atomically.
 
     points : (n_frames, n_landmarks, 2|3); blendshapes : (n_frames, n_scores);
-    head_matrix : (n_frames, 4, 4).
+    head_matrix : (n_frames, 4, 4); frame_index : (n_frames,) int; time : (n_frames,) seconds.
     """
     arrays = {"points": points, "fps": np.float64(fps), "format_version": np.int64(FORMAT_VERSION)}
+    if frame_index is not None:
+        arrays["frame_index"] = np.asarray(frame_index, dtype=np.int64)
+    if time is not None:
+        arrays["time"] = np.asarray(time, dtype=np.float64)
     if image_size is not None:
         arrays["image_size"] = np.array(image_size, dtype=np.int64)
     if blendshapes is not None:
@@ -87,22 +97,17 @@ def load_track(path: str | Path, *, fps: float | None = None) -> Track:
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error, KeyError, NotImplementedError,
+            RuntimeError) as exc:
         raise InputError(f"{path}: not a readable .npz track file ({exc.__class__.__name__})") from None
-    missing = {"points", "fps"} - set(arrays)
-    if missing:
-        raise InputError(f"{path}: track file lacks {sorted(missing)} (needs 'points' and 'fps')")
-    points = arrays["points"]
-    if points.ndim != 3 or points.shape[2] not in (2, 3) or points.shape[0] == 0:
-        raise InputError(
-            f"{path}: points must have shape (n_frames, n_landmarks, 2 or 3); got {points.shape}"
-        )
+    check_track_arrays(path, arrays)
     size = arrays.get("image_size")
     names = arrays.get("blendshape_names")
     try:
-        return Track(points, float(arrays["fps"]), tuple(size) if size is not None else None,
+        return Track(arrays["points"], float(np.asarray(arrays["fps"]).reshape(-1)[0]),
+                     tuple(size) if size is not None else None,
                      arrays.get("blendshapes"), tuple(str(n) for n in names) if names is not None else (),
-                     arrays.get("head_matrix"))
+                     arrays.get("head_matrix"), arrays.get("frame_index"), arrays.get("time"))
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
 
@@ -126,7 +131,7 @@ def _load_csv_track(path: Path, fps: float | None) -> Track:
     try:
         with open(path, newline="") as fh:
             rows = [r for r in csv.reader(fh) if r]
-    except (OSError, UnicodeDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(f"{path}: not a readable CSV file ({exc.__class__.__name__})") from None
     if len(rows) < 2:
         raise InputError(f"{path}: a landmark CSV needs a header and at least one row")
@@ -140,4 +145,11 @@ def _load_csv_track(path: Path, fps: float | None) -> Track:
     if first == 2 and len(table) > 1 and table[-1, 1] > table[0, 1]:
         fps = (len(table) - 1) / (table[-1, 1] - table[0, 1])
     points = table[:, first:].reshape(len(table), -1, n_dims)
-    return Track(points, fps or 30.0)
+    frames = table[:, 0]
+    if not (np.isfinite(frames) & (frames == np.round(frames))).all():
+        raise InputError(f"{path}: frame: every row needs a whole frame number")
+    arrays = {"points": points, "fps": np.float64(fps or 30.0), "frame_index": frames.astype(np.int64)}
+    if first == 2:
+        arrays["time"] = table[:, 1]
+    check_track_arrays(path, arrays)
+    return Track(points, float(arrays["fps"]), frame_index=arrays["frame_index"], time=arrays.get("time"))

@@ -1,4 +1,5 @@
-"""Weights CSV: header ``frame,time,<name>,...``, one row per frame; empty cell = no estimate."""
+"""Weights CSV: header ``frame,time,<name>,...``, one row per frame (its source frame number and
+time in seconds); empty cell = no estimate."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 from ..containers import Weights
 from ..exceptions import InputError
 from .atomic import atomic_path, existing_file
+from .validate import check_weights_table
 
 __all__ = ["save_weights_csv", "load_weights_csv"]
 
@@ -19,35 +21,26 @@ def _cell(value: float) -> str:
 
 
 def save_weights_csv(weights: Weights, path: str | Path) -> Path:
-    """Write ``weights`` as CSV (times in seconds at ``weights.fps``), atomically."""
+    """Write ``weights`` as CSV, atomically: ``frame`` is the source frame number of each row and
+    ``time`` its source time in seconds (``weights.frame_index`` and ``weights.time``)."""
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         out = csv.writer(fh)
         out.writerow(["frame", "time", *weights.names])
-        for f, (t, row) in enumerate(zip(weights.times, weights.values)):
-            out.writerow([f, f"{t:.6f}", *map(_cell, row)])
+        for f, t, row in zip(weights.frame_index, weights.time, weights.values):
+            out.writerow([int(f), f"{t:.6f}", *map(_cell, row)])
     return Path(path)
 
 
 def load_weights_csv(path: str | Path) -> Weights:
-    """Read a weights CSV; the frame rate is recovered from the time column."""
+    """Read a weights CSV, checked by :func:`keyshape.io.validate.check_weights_table`; the
+    frame numbers and times come from its columns, the (mean) frame rate from the times."""
     path = existing_file(path)
     try:
         with open(path, newline="") as fh:
             rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(f"{path}: not a readable CSV file ({exc.__class__.__name__})") from None
-    if not rows or rows[0][:2] != ["frame", "time"] or len(rows[0]) < 3:
-        raise InputError(f"{path}: expected a header 'frame,time,<name>,...'")
-    names = rows[0][2:]
-    try:
-        table = np.array([[float(c) if c else np.nan for c in r] for r in rows[1:] if r], dtype=float)
-    except ValueError as exc:
-        raise InputError(f"{path}: {exc}") from None
-    if table.ndim != 2 or table.shape[0] < 1 or table.shape[1] != len(names) + 2:
-        raise InputError(f"{path}: every row needs {len(names) + 2} columns")
+    names, table = check_weights_table(path, rows)
     times = table[:, 1]
-    span = times[-1] - times[0]
-    if len(times) > 1 and not span > 0:
-        raise InputError(f"{path}: the time column must increase")
-    fps = (len(times) - 1) / span if len(times) > 1 else 30.0
-    return Weights(table[:, 2:], names, fps)
+    fps = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 30.0
+    return Weights(table[:, 2:], names, fps, table[:, 0].astype(np.int64), times)

@@ -340,4 +340,4 @@ def retarget(weights: Weights, mapping: Mapping) -> Weights:
     values = np.einsum("fk,tk->ft", keyed, mapping.matrix)
     if mapping.offset.any():
         values = np.maximum(values + mapping.offset, 0.0)
-    return Weights(values, mapping.targets, weights.fps)
+    return weights.with_values(values, mapping.targets)

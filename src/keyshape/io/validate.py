@@ -1,0 +1,321 @@
+"""One validator per file format keyshape reads: track ``.npz``, ``keys.json``, ``weights.csv``,
+``take.json`` (and the header of an animation ``.glb``).
+
+Each reader in :mod:`keyshape.io` calls its validator before it builds a core type, so every
+verb that reads a format checks it the same way, and a broken file is one line naming the file,
+the field and the bad value (an :class:`~keyshape.exceptions.InputError`), never a traceback
+from deep inside the numerics.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from ..exceptions import InputError
+
+__all__ = ["check_track_arrays", "check_keys_data", "check_weights_table", "check_take_info", "check_glb",
+           "MAX_COORDINATE", "MAX_WEIGHT"]
+
+MAX_COORDINATE = 1e6  # |landmark coordinate| in pixels: beyond it a track is corrupt, not a face
+MAX_WEIGHT = 5.0  # a weight above it is no blend of key shapes (solve writes 0 <= w <= --max)
+
+
+def _fail(path, field: str, text: str) -> InputError:
+    """``PATH: FIELD must ...`` or ``PATH: FIELD: what is wrong``."""
+    return InputError(f"{path}: {field} {text}" if text.startswith("must") else f"{path}: {field}: {text}")
+
+
+def _show(value) -> str:
+    text = repr(value.item() if isinstance(value, np.generic) else value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+# -- track .npz ---------------------------------------------------------------------------------
+
+def check_track_arrays(path, arrays: dict[str, np.ndarray]) -> None:
+    """Check the arrays of a track file: ``points (n_frames, n_landmarks, 2|3)`` finite or NaN
+    frames, at least one face, within ±:data:`MAX_COORDINATE`; ``fps`` > 0; the optional
+    ``frame_index``, ``time``, ``image_size``, ``blendshapes``, ``blendshape_names`` and
+    ``head_matrix`` of matching shapes."""
+    missing = {"points", "fps"} - set(arrays)
+    if missing:
+        raise InputError(f"{path}: track file lacks {sorted(missing)} (needs 'points' and 'fps')")
+    points = arrays["points"]
+    if not _numeric(points) or points.ndim != 3 or points.shape[2] not in (2, 3) or 0 in points.shape[:2]:
+        raise _fail(path, "points", f"must have shape (n_frames, n_landmarks, 2 or 3), numbers; got "
+                                    f"{points.shape} {points.dtype}")
+    _check_points_values(path, points)
+    _check_fps(path, arrays["fps"])
+    n = points.shape[0]
+    if "frame_index" in arrays:
+        _check_increasing(path, "frame_index", arrays["frame_index"], n, integer=True)
+    if "time" in arrays:
+        _check_increasing(path, "time", arrays["time"], n, integer=False)
+    _check_track_extras(path, arrays, n)
+
+
+def _numeric(array: np.ndarray) -> bool:
+    return np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
+
+
+def _check_points_values(path, points: np.ndarray) -> None:
+    values = points.astype(float, copy=False)
+    finite = np.isfinite(values)
+    bad = ~finite & ~np.isnan(values)
+    if bad.any():
+        frame = int(np.argwhere(bad)[0][0])
+        raise _fail(path, "points", f"frame {frame} holds {_show(values[bad][0])} (missing faces are NaN)")
+    large = finite & (np.abs(values) > MAX_COORDINATE)
+    if large.any():
+        frame = int(np.argwhere(large)[0][0])
+        raise _fail(path, "points", f"frame {frame} holds {values[large][0]:.3g}, beyond ±{MAX_COORDINATE:g} "
+                                    "pixels")
+    if not finite.all(axis=(1, 2)).any():
+        raise _fail(path, "points", f"no frame has a face (all {points.shape[0]} frames are NaN)")
+
+
+def _check_fps(path, fps) -> None:
+    fps = np.asarray(fps)
+    if fps.size != 1 or not _numeric(fps) or not math.isfinite(float(fps.reshape(-1)[0])) \
+            or not float(fps.reshape(-1)[0]) > 0:
+        raise _fail(path, "fps", f"must be a positive number; got {_show(fps.tolist())}")
+
+
+def _check_increasing(path, name: str, values, n: int, *, integer: bool) -> None:
+    values = np.asarray(values)
+    kind = "whole numbers" if integer else "numbers"
+    ok_type = np.issubdtype(values.dtype, np.integer) if integer else _numeric(values)
+    if not ok_type or values.shape != (n,):
+        raise _fail(path, name, f"must be {n} {kind} (one per frame); got {values.shape} {values.dtype}")
+    v = values.astype(float)
+    if not np.isfinite(v).all() or (integer and (v < 0).any()):
+        i = int(np.flatnonzero(~np.isfinite(v) | (v < 0))[0])
+        raise _fail(path, name, f"frame {i} holds {_show(values[i])}")
+    steps = np.flatnonzero(np.diff(v) <= 0)
+    if steps.size:
+        i = int(steps[0]) + 1
+        raise _fail(path, name, f"must increase from frame to frame; frame {i} holds {_show(values[i])} "
+                                f"after {_show(values[i - 1])}")
+
+
+def _check_track_extras(path, arrays: dict, n: int) -> None:
+    size = arrays.get("image_size")
+    if size is not None and (size.shape != (2,) or not np.issubdtype(size.dtype, np.integer) or (size <= 0).any()):
+        raise _fail(path, "image_size", f"must be (width, height) > 0; got {_show(size.tolist())}")
+    scores = arrays.get("blendshapes")
+    if scores is not None:
+        if not _numeric(scores) or scores.ndim != 2 or scores.shape[0] != n:
+            raise _fail(path, "blendshapes", f"must have shape ({n}, n_scores); got {scores.shape}")
+        names = arrays.get("blendshape_names")
+        if names is not None and names.shape != (scores.shape[1],):
+            raise _fail(path, "blendshape_names", f"must name the {scores.shape[1]} scores; got {names.shape}")
+    matrix = arrays.get("head_matrix")
+    if matrix is not None and (not _numeric(matrix) or matrix.shape != (n, 4, 4)):
+        raise _fail(path, "head_matrix", f"must have shape ({n}, 4, 4); got {matrix.shape}")
+
+
+# -- keys.json ----------------------------------------------------------------------------------
+
+def check_keys_data(path, data) -> None:
+    """Check a key file's JSON: landmark counts, the neutral, every region's indices and keys
+    (unique names, whole frame numbers >= 0, an optional ``mirror_of`` naming another key), and
+    one finite shape per key of its region's size."""
+    if not isinstance(data, dict) or data.get("format") != "keyshape-keys":
+        raise InputError(f"{path}: not a keyshape key file (expected \"format\": \"keyshape-keys\")")
+    n_landmarks = _whole(path, "n_landmarks", data.get("n_landmarks"), low=1)
+    n_dims = data.get("n_dims")
+    if n_dims not in (2, 3) or isinstance(n_dims, bool):
+        raise _fail(path, "n_dims", f"must be 2 or 3; got {_show(n_dims)}")
+    neutral = data.get("neutral")
+    if not isinstance(neutral, dict):
+        raise _fail(path, "neutral", f"must be {{\"frame\": N, \"take\": ...}}; got {_show(neutral)}")
+    _whole(path, "neutral.frame", neutral.get("frame"), low=0)
+    shapes = data.get("shapes")
+    if not isinstance(shapes, dict):
+        raise _fail(path, "shapes", f"must map names to landmark lists; got {_show(shapes)}")
+    _check_shape(path, "shapes.neutral", shapes.get("neutral"), n_landmarks, n_dims)
+    names = _check_regions(path, data.get("regions"), shapes, n_landmarks, n_dims)
+    stable = data.get("stable")
+    if stable is not None:
+        _indices(path, "stable", stable, n_landmarks)
+    _check_mirrors(path, data["regions"], names)
+
+
+def _whole(path, field: str, value, *, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise _fail(path, field, f"must be a whole number >= {low}; got {_show(value)}")
+    return value
+
+
+def _indices(path, field: str, value, n_landmarks: int) -> list[int]:
+    if not isinstance(value, list) or not value:
+        raise _fail(path, field, f"must be a non-empty list of landmark indices; got {_show(value)}")
+    for i in value:
+        if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < n_landmarks:
+            raise _fail(path, field, f"landmark indices must be whole numbers in 0..{n_landmarks - 1}; "
+                                     f"got {_show(i)}")
+    if len(set(value)) != len(value):
+        raise _fail(path, field, "lists a landmark twice")
+    return value
+
+
+def _check_shape(path, field: str, value, n_points: int, n_dims: int) -> None:
+    try:
+        shape = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise _fail(path, field, f"must be {n_points} points of {n_dims} numbers; got {_show(value)}") from None
+    if shape.shape != (n_points, n_dims):
+        raise _fail(path, field, f"must be {n_points} points of {n_dims} numbers; got shape {shape.shape}")
+    if not np.isfinite(shape).all() or (np.abs(shape) > MAX_COORDINATE).any():
+        bad = shape[~np.isfinite(shape) | (np.abs(np.nan_to_num(shape)) > MAX_COORDINATE)][0]
+        raise _fail(path, field, f"holds {_show(float(bad))} (coordinates must be finite, within "
+                                 f"±{MAX_COORDINATE:g})")
+
+
+def _check_regions(path, regions, shapes: dict, n_landmarks: int, n_dims: int) -> list[str]:
+    if not isinstance(regions, dict) or not regions:
+        raise _fail(path, "regions", f"must map region names to {{indices, keys}}; got {_show(regions)}")
+    names: list[str] = []
+    for region, spec in regions.items():
+        field = f"regions.{region}"
+        if not isinstance(spec, dict) or not isinstance(spec.get("keys"), list):
+            raise _fail(path, field, f"must be {{\"indices\": [...], \"keys\": [...]}}; got {_show(spec)}")
+        indices = _indices(path, f"{field}.indices", spec.get("indices"), n_landmarks)
+        for i, key in enumerate(spec["keys"]):
+            where = f"{field}.keys[{i}]"
+            if not isinstance(key, dict) or not isinstance(key.get("name"), str) or not key["name"] \
+                    or key["name"] == "neutral":
+                raise _fail(path, where, f"needs a \"name\" (a non-empty string, not 'neutral'); got {_show(key)}")
+            if key["name"] in names:
+                raise _fail(path, f"{where}.name", f"{key['name']!r} names two keys; names must be unique")
+            _whole(path, f"{where}.frame", key.get("frame"), low=0)
+            if not isinstance(key.get("take", ""), str):
+                raise _fail(path, f"{where}.take", f"must be a string; got {_show(key['take'])}")
+            if key["name"] not in shapes:
+                raise _fail(path, "shapes", f"has no shape for key {key['name']!r}")
+            _check_shape(path, f"shapes.{key['name']}", shapes[key["name"]], len(indices), n_dims)
+            names.append(key["name"])
+    return names
+
+
+def _check_mirrors(path, regions: dict, names: list[str]) -> None:
+    for region, spec in regions.items():
+        for i, key in enumerate(spec["keys"]):
+            source = key.get("mirror_of")
+            if source in (None, ""):
+                continue
+            if not isinstance(source, str) or source not in names or source == key["name"]:
+                raise _fail(path, f"regions.{region}.keys[{i}].mirror_of",
+                            f"must name another key of the file; got {_show(source)}")
+
+
+# -- weights.csv --------------------------------------------------------------------------------
+
+def check_weights_table(path, rows: list[list[str]]) -> tuple[list[str], np.ndarray]:
+    """Check a weights CSV's rows (header ``frame,time,<name>,...``) and return (names, table):
+    ``table (n_frames, 2 + n_channels)`` float, frames whole and increasing, times finite and
+    increasing, weights empty (no estimate) or in ``0..MAX_WEIGHT``."""
+    if not rows or rows[0][:2] != ["frame", "time"] or len(rows[0]) < 3:
+        raise InputError(f"{path}: expected a header 'frame,time,<name>,...'")
+    names = rows[0][2:]
+    empty = [i for i, n in enumerate(names) if not n.strip()]
+    if empty:
+        raise _fail(path, "header", f"column {empty[0] + 3} has no name")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise _fail(path, "header", f"names {twice[0]!r} twice")
+    body = [(i, r) for i, r in enumerate(rows[1:], start=2) if r]
+    if not body:
+        raise InputError(f"{path}: has a header but no rows (no frames)")
+    table = np.array([_weights_row(path, line, row, names) for line, row in body], dtype=float)
+    _check_increasing_column(path, "frame", table[:, 0], [line for line, _ in body])
+    _check_increasing_column(path, "time", table[:, 1], [line for line, _ in body])
+    return names, table
+
+
+def _weights_row(path, line: int, row: list[str], names: list[str]) -> list[float]:
+    if len(row) != len(names) + 2:
+        raise _fail(path, f"line {line}", f"has {len(row)} columns; the header has {len(names) + 2}")
+    frame, time = _cell(path, line, "frame", row[0]), _cell(path, line, "time", row[1])
+    if frame is None or not float(frame).is_integer() or frame < 0:
+        raise _fail(path, f"line {line}, frame", f"must be a whole number >= 0; got {row[0]!r}")
+    if time is None:
+        raise _fail(path, f"line {line}, time", "is empty")
+    values = []
+    for name, text in zip(names, row[2:]):
+        value = _cell(path, line, name, text)
+        if value is not None and not 0 <= value <= MAX_WEIGHT:
+            raise _fail(path, f"line {line}, {name}", f"{text.strip()} is outside 0..{MAX_WEIGHT:g} (weights "
+                                                      "are >= 0; empty means no estimate)")
+        values.append(np.nan if value is None else value)
+    return [frame, time, *values]
+
+
+def _cell(path, line: int, column: str, text: str) -> float | None:
+    if not text.strip():
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise _fail(path, f"line {line}, {column}", f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise _fail(path, f"line {line}, {column}", f"{text!r} is not a finite number (leave a cell empty "
+                                                    "for no estimate)")
+    return value
+
+
+def _check_increasing_column(path, column: str, values: np.ndarray, lines: list[int]) -> None:
+    steps = np.flatnonzero(np.diff(values) <= 0)
+    if steps.size:
+        i = int(steps[0]) + 1
+        raise _fail(path, f"line {lines[i]}, {column}", f"{values[i]:g} does not follow {values[i - 1]:g}: rows "
+                                                        "must be in increasing frame and time order")
+
+
+# -- take.json and the animation ------------------------------------------------------------------
+
+def check_take_info(path, info) -> None:
+    """Check ``take.json``: its format, ``fps`` > 0, ``n_frames`` >= 1, ``video`` a path,
+    ``files`` a map of names to file names, ``neutral_frame`` and ``image_size``."""
+    if not isinstance(info, dict) or info.get("format") != "keyshape-take":
+        raise InputError(f"{path}: not a keyshape take description (expected \"format\": \"keyshape-take\")")
+    fps = info.get("fps")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or not fps > 0:
+        raise _fail(path, "fps", f"must be a number > 0; got {_show(fps)}")
+    _whole(path, "n_frames", info.get("n_frames"), low=1)
+    if info.get("neutral_frame") is not None:
+        _whole(path, "neutral_frame", info["neutral_frame"], low=0)
+    if info.get("video") is not None and not isinstance(info["video"], str):
+        raise _fail(path, "video", f"must be the video's path; got {_show(info['video'])}")
+    files = info.get("files", {})
+    if not isinstance(files, dict) or not all(isinstance(k, str) and isinstance(v, str) and v
+                                              for k, v in files.items()):
+        raise _fail(path, "files", f"must map roles to file names; got {_show(files)}")
+    size = info.get("image_size")
+    if size is not None and (not isinstance(size, list) or len(size) != 2
+                             or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
+        raise _fail(path, "image_size", f"must be [width, height]; got {_show(size)}")
+
+
+def check_glb(path: str | Path) -> Path:
+    """``path`` if it starts as a glTF binary should (magic ``glTF``, version 2, the length its
+    header states, a JSON chunk first); else InputError naming it."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(20)
+        size = path.stat().st_size
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if len(head) < 20:
+        raise InputError(f"{path}: not a glTF binary (.glb): {size} bytes")
+    magic, version, length, _, chunk = struct.unpack("<4sIIII", head)
+    if magic != b"glTF" or version != 2 or chunk != 0x4E4F534A:
+        raise InputError(f"{path}: not a glTF 2.0 binary (.glb)")
+    if length != size:
+        raise InputError(f"{path}: a damaged .glb: its header says {length} bytes, the file has {size}")
+    return path
