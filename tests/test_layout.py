@@ -30,6 +30,7 @@ ALLOWED = {
     "targets": {"alignment", "io", "capture", "render"},
     "report": {"alignment", "metrics", "io", "capture", "render"},
     "app": {"capture", "alignment", "keyshapes", "decompose", "targets", "io", "render", "report", "metrics"},
+    "live": {"capture", "alignment", "keyshapes", "decompose", "targets", "io", "render", "report", "metrics", "app"},
 }
 
 

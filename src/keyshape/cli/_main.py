@@ -59,6 +59,7 @@ VERBS = {
     "sculpt": ("sculpt", ("write the sculpt kit: the character with one target per key shape, a contact "
                          "sheet, a README")),
     "view": ("view", "watch the video and the animated character in sync, in a browser"),
+    "live": ("live", "a camera drives a character in real time: VMC, Unreal Live Link, the browser, a recording"),
 }
 
 

@@ -1,0 +1,212 @@
+"""The live loop: newest frame -> MediaPipe -> causal solve -> every output, until the source ends.
+
+The source decodes in its own thread (on the other core) and keeps only the newest frame, so
+the loop never works on a stale one; tracking, solving and sending run here, one frame at a
+time. The loop stops when the source ends or fails, on Ctrl-C or SIGTERM, or when
+``controls.stop`` is set; every output is closed on the way out (a recording is then written).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..capture import FaceFollower, MediaPipeTracker, TrackerOptions
+from ..containers import KeyShapes, Track, Weights
+from ..exceptions import InputError, Terminated
+from .frame import LiveFrame, Output
+from .solver import DEFAULT_SMOOTHING, LiveSolver
+from .sources import FrameSource, Mailbox
+
+__all__ = ["run_live", "Controls", "Session", "LiveSummary"]
+
+
+@dataclass
+class Controls:
+    """Requests from outside the loop (signal handlers, a key-press thread, tests)."""
+
+    stop: threading.Event = field(default_factory=threading.Event)
+    neutral: threading.Event = field(default_factory=threading.Event)
+
+
+@dataclass
+class Session:
+    """What :func:`run_live` sends to, made once the key set is known: the outputs, and the
+    mapping from key weights to the targets they carry (None: the key names themselves)."""
+
+    outputs: list[Output]
+    mapping: object = None
+
+
+@dataclass
+class LiveSummary:
+    """How a live session went.
+
+    ``delivered`` frames came from the source after calibration, ``processed`` of them were solved
+    and sent, ``dropped`` were replaced by newer ones before the loop could take them.
+    ``latency`` and ``detect`` are ``(processed,)`` seconds: frame arrival -> the last output's
+    ``send`` returned, and MediaPipe's own share.
+    """
+
+    source: str
+    fps: float
+    keys: KeyShapes | None = None
+    delivered: int = 0
+    processed: int = 0
+    dropped: int = 0
+    faces: int = 0
+    neutral_captures: int = 0
+    seconds: float = 0.0
+    ended: str = ""
+    error: str | None = None
+    latency: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    detect: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+class _Tracker:
+    """MediaPipe in VIDEO mode with strictly increasing timestamps, following one face."""
+
+    def __init__(self, tracker: MediaPipeTracker, face: int):
+        self.tracker, self.follower = tracker, FaceFollower(face)
+        self.last_ms = -1
+
+    def __call__(self, frame):
+        ms = max(int(round(frame.time * 1000)), self.last_ms + 1)
+        self.last_ms = ms
+        chosen = self.follower.pick(self.tracker.detect(frame.rgb, ms))
+        return chosen if chosen is not None and chosen.points.shape[0] == 478 else None
+
+
+def _warm_up(tracker: _Tracker, size) -> None:
+    """Load the model's graph before the first real frame (at time 0, before any frame's)."""
+    tracker.tracker.detect(np.zeros((size[1], size[0], 3), np.uint8), 0)
+    tracker.last_ms = 0
+
+
+def _warm_up_solver(keys: KeyShapes) -> None:
+    """Compile (or load) the solver's kernels before the first real frame."""
+    from ..decompose import solve_weights
+
+    solve_weights(Track(keys.neutral[None], 30.0), keys, upper=1.0)
+
+
+def _calibrate(mailbox: Mailbox, tracker: _Tracker, seconds: float, fps: float, say) -> KeyShapes:
+    """Track the first ``seconds`` as a range-of-motion take and discover its key shapes."""
+    from ..app import discover_keys
+
+    say(f"calibrating: make every expression you will use for {seconds:g} s (range of motion) ...")
+    points, first = [], None
+    while True:
+        frame = mailbox.get(0.1)
+        if frame is None:
+            if mailbox.closed:
+                break
+            continue
+        first = frame.time if first is None else first
+        chosen = tracker(frame)
+        points.append(chosen.points if chosen is not None else np.full((478, 3), np.nan))
+        if frame.time - first >= seconds:
+            break
+    track = Track(np.array(points) if points else np.zeros((0, 478, 3)), fps)
+    if track.n_frames == 0 or track.valid.sum() < 2:
+        raise InputError(f"calibration saw {int(track.valid.sum()) if track.n_frames else 0} frames with a face "
+                         f"in {seconds:g} s; face the camera and try again")
+    keys = discover_keys(track, take="calibration")
+    say(f"calibrated on {track.n_frames} frames ({int(track.valid.sum())} with a face): {keys.n_keys} keys")
+    return keys
+
+
+def _values(solve, mapping, names, fps) -> np.ndarray:
+    keyed = np.nan_to_num(solve.keys, nan=0.0)
+    if mapping is None:
+        return keyed
+    from ..targets import retarget
+
+    return retarget(Weights(keyed[None], names, fps), mapping).values[0]
+
+
+def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys: KeyShapes | None = None,
+             calibrate: float | None = None, upper: float | None = 1.0, smoothing: dict | None = DEFAULT_SMOOTHING,
+             tracker_options: TrackerOptions | None = None, face: int = 0, controls: Controls | None = None,
+             duration: float | None = None, say: Callable[[str], None] = print) -> LiveSummary:
+    """Drive ``setup(keys)``'s outputs from ``source`` until it ends or is stopped.
+
+    Parameters
+    ----------
+    source : FrameSource (not started)
+    setup : called once with the key set; returns the :class:`Session` (outputs and mapping)
+    keys : KeyShapes, or None with ``calibrate``: seconds of range of motion to discover them from
+    upper, smoothing : the solve's weight bound and One Euro settings (see :class:`LiveSolver`)
+    tracker_options, face : MediaPipe's settings and which face to follow (as offline)
+    controls : stop / neutral requests; Ctrl-C and SIGTERM stop too
+    duration : seconds of live frames after which to stop (None: until the source ends)
+
+    Returns
+    -------
+    LiveSummary
+    """
+    if keys is None and not calibrate:
+        raise InputError("live needs a key set (--keys) or a calibration (--calibrate SECONDS)")
+    controls = controls or Controls()
+    summary = LiveSummary(source.name, source.fps)
+    latency, detect = [], []
+    outputs: list[Output] = []
+    start = time.perf_counter()
+    try:
+        with MediaPipeTracker(tracker_options or TrackerOptions()) as mediapipe:
+            tracker = _Tracker(mediapipe, face)
+            _warm_up(tracker, source.size)
+            calibrating = keys is None
+            if calibrating:
+                keys = _calibrate(source.start(), tracker, float(calibrate), source.fps, say)
+            _warm_up_solver(keys)
+            summary.keys = keys
+            session = setup(keys)
+            outputs = session.outputs
+            solver = LiveSolver(keys, fps=source.fps, upper=upper, smoothing=smoothing)
+            mailbox = source.mailbox if calibrating else source.start()
+            base_delivered, base_dropped = mailbox.delivered - mailbox.pending, mailbox.dropped
+            start = time.perf_counter()
+            deadline = start + duration if duration else float("inf")
+            while not controls.stop.is_set() and time.perf_counter() < deadline:
+                frame = mailbox.get(0.1)
+                if frame is None:
+                    if mailbox.closed:
+                        break
+                    continue
+                if controls.neutral.is_set():
+                    controls.neutral.clear()
+                    solver.recapture_neutral()
+                began = time.perf_counter()
+                chosen = tracker(frame)
+                detect.append(time.perf_counter() - began)
+                solve = solver.step(chosen.points if chosen is not None else None)
+                names = session.mapping.targets if session.mapping is not None else keys.names
+                live = LiveFrame(frame.index, frame.time, frame.arrival, tuple(names),
+                                 _values(solve, session.mapping, keys.names, source.fps), solve.keys,
+                                 solve.head, solve.eyes, solve.face, frame.rgb, chosen)
+                for output in outputs:
+                    output.send(live)
+                latency.append(time.perf_counter() - frame.arrival)
+                summary.faces += solve.face
+            summary.ended = mailbox.error or ("end of the video" if mailbox.closed else "stopped")
+            summary.error = mailbox.error
+            summary.delivered = mailbox.delivered - base_delivered
+            summary.dropped = mailbox.dropped - base_dropped
+            summary.neutral_captures = solver.neutral_captures
+    except (KeyboardInterrupt, Terminated) as stop:
+        summary.ended = "stopped (Ctrl-C)" if isinstance(stop, KeyboardInterrupt) else "stopped (SIGTERM)"
+        summary.delivered = source.mailbox.delivered
+        summary.dropped = source.mailbox.dropped
+    finally:
+        source.stop()
+        summary.seconds = time.perf_counter() - start
+        summary.processed = len(latency)
+        summary.latency, summary.detect = np.array(latency), np.array(detect)
+        for output in outputs:
+            output.close()
+    return summary

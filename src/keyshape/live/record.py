@@ -1,0 +1,123 @@
+"""``--record DIR``: a live session written as a take, so nothing seen live is lost.
+
+Frames are spooled to disk as they come (flat memory however long the session), indexed by the
+source's frame number: a frame the loop dropped, or one without a face, is a NaN frame, so the
+track keeps the source's timing. When the session ends — the source ended or failed, Ctrl-C,
+SIGTERM — the spool becomes, in ``DIR``:
+
+* ``track.npz`` — MediaPipe's landmarks, scores and head matrices of every frame;
+* ``keys.json`` — the key set used (the calibrated one with ``--calibrate``);
+* ``weights.csv`` — the key weights as they were sent live (causal, smoothed);
+* ``animation.glb`` — the character driven by those weights, with the head and eye rotations;
+* ``take.json`` — so ``keyshape view DIR`` and ``keyshape report DIR`` open it.
+
+Re-solve it offline with the zero-lag smoother: ``keyshape solve DIR/track.npz DIR/keys.json``.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from contextlib import ExitStack
+from pathlib import Path
+
+import numpy as np
+
+from ..containers import KeyShapes, Rig, Track, Weights
+from .frame import LiveFrame
+
+__all__ = ["Recorder", "RECORD_FILES"]
+
+RECORD_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
+_NAN = np.float32(np.nan)
+
+
+class Recorder:
+    """An :class:`~keyshape.live.frame.Output` that writes the session into ``folder`` at ``close``.
+
+    Parameters
+    ----------
+    folder : Path
+    keys : KeyShapes
+    fps : float
+    image_size : (width, height)
+    rig : Rig and mapping : Mapping, for ``animation.glb`` (default: the built-in character)
+    source : Path or str, recorded in ``take.json``
+    """
+
+    def __init__(self, folder, keys: KeyShapes, *, fps: float, image_size, rig: Rig | None = None,
+                 mapping=None, source=None, blendshape_names: tuple[str, ...] = ()):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.keys, self.fps, self.image_size = keys, float(fps), tuple(image_size)
+        self.rig, self.mapping, self.source = rig, mapping, source
+        self.blendshape_names = tuple(blendshape_names)
+        self._spool = Path(tempfile.mkdtemp(prefix=".live-spool-", dir=self.folder))
+        self._stack = ExitStack()
+        self._files = {name: self._stack.enter_context(open(self._spool / f"{name}.f32", "wb"))
+                       for name in ("points", "scores", "matrix", "weights")}
+        self._sizes = {"points": keys.n_landmarks * 3, "scores": len(blendshape_names) or 52,
+                       "matrix": 16, "weights": keys.n_keys}
+        self.n_frames = 0
+        self.files: tuple[Path, ...] = ()
+
+    def send(self, frame: LiveFrame) -> None:
+        while self.n_frames < frame.index:  # frames the loop dropped: gaps
+            self._write(None, None)
+        if frame.index == self.n_frames:
+            self._write(frame.detection if frame.face else None, frame.keys)
+
+    def _write(self, detection, keys) -> None:
+        parts = {"points": None, "scores": None, "matrix": None, "weights": keys}
+        if detection is not None:
+            parts.update(points=detection.points, scores=detection.scores, matrix=detection.matrix)
+        for name, fh in self._files.items():
+            value = parts[name]
+            size = self._sizes[name]
+            if value is None or np.size(value) != size:
+                value = np.full(size, _NAN)
+            fh.write(np.asarray(value, dtype=np.float32).tobytes())
+        self.n_frames += 1
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {name: np.fromfile(self._spool / f"{name}.f32", dtype=np.float32).reshape(self.n_frames, size)
+                for name, size in self._sizes.items()}
+
+    def close(self) -> None:
+        """Write the take files (see the module docstring) and remove the spool."""
+        self._stack.close()
+        try:
+            if self.n_frames:
+                self.files = self._finish(self._arrays())
+        finally:
+            shutil.rmtree(self._spool, ignore_errors=True)
+
+    def _finish(self, arrays: dict[str, np.ndarray]) -> tuple[Path, ...]:
+        from ..io import save_keys, save_take_info, save_track, save_weights_csv
+
+        n = self.n_frames
+        names = self.blendshape_names or None
+        track = Track(arrays["points"].reshape(n, -1, 3), self.fps, self.image_size,
+                      arrays["scores"] if names else None, names or (), arrays["matrix"].reshape(n, 4, 4))
+        weights = Weights(arrays["weights"].astype(float), self.keys.names, self.fps)
+        out = self.folder
+        save_track(track, out / "track.npz")
+        save_keys(self.keys, out / "keys.json")
+        save_weights_csv(weights, out / "weights.csv")
+        written = [out / "track.npz", out / "keys.json", out / "weights.csv"]
+        if track.valid.any():
+            self._animation(track, weights, out / "animation.glb")
+            written.append(out / "animation.glb")
+        save_take_info(out / "take.json", video=Path(str(self.source or "live")), track=track, keys=self.keys)
+        return (*written, out / "take.json")
+
+    def _animation(self, track: Track, weights: Weights, path: Path) -> None:
+        from ..app import solve_take
+        from ..io import export
+        from ..targets import Mapping, default_character, retarget
+
+        rig = self.rig if self.rig is not None else default_character(self.keys)
+        mapping = self.mapping if self.mapping is not None else Mapping.by_name(self.keys.names, rig.names)
+        solved = solve_take(track, self.keys, smoothness=0.0)  # head poses and gaze of every frame
+        eyes = solved.gaze.rotations() if solved.gaze is not None else None
+        export(retarget(weights, mapping), path, rig=rig, poses=solved.poses, eyes=eyes)
