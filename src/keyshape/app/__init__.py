@@ -32,12 +32,12 @@ from ._pipeline import (
 )
 from ._ray import RayRunner, ray_available
 from ._run import OUTPUT_FILES, RunOptions, TakeSummary, run_take
-from ._sculpt import SculptKit, contact_sheet, sculpt_targets, write_sculpt_kit
+from ._sculpt import SculptKit, check_kit_folder, contact_sheet, sculpt_targets, write_sculpt_kit
 
 __all__ = ["discover_keys", "solve_take", "Solved", "fit_errors", "head_poses", "head_and_gaze", "arkit_scores",
            "key_scores",
            "run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES",
            "batch", "BatchRow", "find_takes", "format_table", "is_complete", "make_runner", "VIDEO_SUFFIXES",
            "write_summary", "SequentialRunner", "RayRunner", "ray_available",
-           "write_sculpt_kit", "sculpt_targets", "contact_sheet", "SculptKit",
+           "write_sculpt_kit", "check_kit_folder", "sculpt_targets", "contact_sheet", "SculptKit",
            "KeyShapeModel"]

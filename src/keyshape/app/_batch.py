@@ -9,11 +9,19 @@ solved against it, without tracking it again.
 
 The work runs on Ray when it is installed (:mod:`keyshape.app._ray`), otherwise - or with
 ``sequential=True`` - in this process, one take after the other, with the same outputs.
+
+Resume is decided by a manifest: each finished take's folder holds ``batch.json``, the
+fingerprint (SHA-256) of its video and the options it was made with (with the fingerprints of the
+rig, mapping and key files they name). A rerun skips a take only when its outputs are complete
+and its manifest matches the video and options of this run; a replaced video or a changed option
+(``--count 3``) makes it run again, and ``force=True`` (``--force``) reruns every take.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
+import hashlib
 import json
 import math
 import time
@@ -30,6 +38,7 @@ __all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mpg", ".mpeg", ".wmv"})
 SUMMARY_FIELDS = ("take", "frames", "detection_rate", "keys", "error_pct", "status", "seconds", "error")
 TRACKS = ".tracks"  # OUTDIR/.tracks/<stem>.npz: tracks of the shared-keys pass, kept until solved
+MANIFEST = "batch.json"  # OUTDIR/<stem>/batch.json: what the finished take was made from
 
 
 @dataclass(frozen=True)
@@ -99,6 +108,55 @@ def is_complete(folder: str | Path) -> bool:
     return isinstance(files, dict) and all((folder / str(name)).is_file() for name in files.values())
 
 
+# -- the manifest: what a finished take was made from -----------------------------------------------
+
+def fingerprint(path: str | Path) -> str:
+    """SHA-256 of a file's bytes, or of a folder's file names and bytes (an OBJ rig folder)."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    for file in files:
+        digest.update(str(file.relative_to(path) if path.is_dir() else "").encode() + b"\0")
+        with open(file, "rb") as fh:
+            while chunk := fh.read(1 << 20):
+                digest.update(chunk)
+    return digest.hexdigest()
+
+
+def take_manifest(video: Path, options: RunOptions) -> dict:
+    """The video's fingerprint and every option, files among them by fingerprint (JSON-ready)."""
+    def plain(value):
+        if isinstance(value, Path):
+            return {"path": str(value), "sha256": fingerprint(value) if value.exists() else None}
+        if isinstance(value, dict):
+            return {str(k): plain(v) for k, v in sorted(value.items())}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        return value
+
+    return {"format": "keyshape-batch-take", "version": 1, "video": str(Path(video).resolve()),
+            "sha256": fingerprint(video),
+            "options": {f.name: plain(getattr(options, f.name)) for f in dataclasses.fields(options)}}
+
+
+def _is_current(folder: Path, video: Path, options: RunOptions) -> bool:
+    """Whether ``folder`` holds a finished take made from this video with these options."""
+    if not is_complete(folder):
+        return False
+    try:
+        made = json.loads((folder / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return False
+    return made == take_manifest(video, options)
+
+
+def _write_manifest(folder: Path, manifest: dict) -> None:
+    from ..io.atomic import atomic_path
+
+    with atomic_path(folder / MANIFEST) as tmp:
+        tmp.write_text(json.dumps(manifest, indent=1) + "\n")
+
+
 # -- the work of one take (runs in a worker) ------------------------------------------------------
 
 def _one_line(exc: BaseException) -> str:
@@ -123,11 +181,19 @@ def _guarded(name: str, work: Callable[[], BatchRow]) -> BatchRow:
 def _run_task(job: tuple[Path, Path, RunOptions, Path | None]) -> BatchRow:
     """Worker: one take start to finish (from its cached track when there is one)."""
     video, outdir, options, track_path = job
-    if track_path is None:
-        from ._run import run_take
 
-        return _guarded(video.name, lambda: _row(run_take(video, outdir, options, progress=False)))
-    return _guarded(video.name, lambda: _row(_run_tracked(video, outdir, options, track_path)))
+    def work() -> BatchRow:
+        manifest = take_manifest(video, options)  # before the work: the inputs it starts from
+        if track_path is None:
+            from ._run import run_take
+
+            row = _row(run_take(video, outdir, options, progress=False))
+        else:
+            row = _row(_run_tracked(video, outdir, options, track_path))
+        _write_manifest(outdir, manifest)
+        return row
+
+    return _guarded(video.name, work)
 
 
 def _track_task(job: tuple[Path, Path, dict]) -> BatchRow:
@@ -193,8 +259,8 @@ def make_runner(*, sequential: bool = False, workers: int | None = None, address
 # -- the batch ------------------------------------------------------------------------------------
 
 def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions | None = None, *,
-          shared_keys: bool = False, runner=None, on_row: Callable[[BatchRow], None] | None = None
-          ) -> list[BatchRow]:
+          shared_keys: bool = False, runner=None, on_row: Callable[[BatchRow], None] | None = None,
+          force: bool = False) -> list[BatchRow]:
     """Process every take into ``outdir/<stem>/``; return one row per take, in input order.
 
     Parameters
@@ -206,13 +272,19 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions |
     shared_keys : discover one key set across all takes, then solve every take against it
     runner : :func:`make_runner`'s result (default: Ray if installed, else sequential)
     on_row : called with each take's row as it finishes (for progress lines)
+    force : rerun every take, even those whose manifest matches (and track the shared-keys takes
+        again, and discover their key set again)
     """
     videos, outdir = find_takes(takes), Path(outdir)
     options = options if options is not None else RunOptions()
     if shared_keys and options.keys is not None:
         raise InputError("--keys and --shared-keys exclude each other: give one key set or discover one")
     outdir.mkdir(parents=True, exist_ok=True)
-    rows = {v: _skipped_row(v, outdir) for v in videos if is_complete(outdir / v.stem)}
+    if force and shared_keys:
+        _forget_shared(outdir)
+    made_with = replace(options, keys=outdir / "keys.json") if shared_keys else options
+    rows = {} if force else {v: _skipped_row(v, outdir) for v in videos
+                             if _is_current(outdir / v.stem, v, made_with)}
     pending = [v for v in videos if v not in rows]
     report = on_row or (lambda row: None)
     for row in rows.values():
@@ -243,6 +315,14 @@ def _process(videos: list[Path], outdir: Path, options: RunOptions, shared_keys:
     if tracks and not any((outdir / TRACKS).iterdir()):
         (outdir / TRACKS).rmdir()
     return rows
+
+
+def _forget_shared(outdir: Path) -> None:
+    """``--force --shared-keys``: the cached tracks and the key set are made again."""
+    import shutil
+
+    shutil.rmtree(outdir / TRACKS, ignore_errors=True)
+    (outdir / "keys.json").unlink(missing_ok=True)
 
 
 def _crashed(video: Path, exc: BaseException) -> BatchRow:

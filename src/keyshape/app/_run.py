@@ -2,13 +2,14 @@
 
 ``run_take`` tracks a video, discovers (or reuses) the key shapes, solves the weights, drives a
 character and writes every output into one folder. Outputs are staged in a hidden folder beside
-and moved in only when everything succeeded, so a failure leaves no half-written take behind.
+and moved in only when everything succeeded, so a failure leaves no half-written take behind. A
+reused folder keeps no stale output: the files of an earlier run that this run did not write
+(its ``preview.mp4`` under ``--no-preview``, its ``map.json``, ...) are removed; files keyshape
+does not write are left alone. The rig, mapping and key set are read before the tracking starts.
 """
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,10 +19,15 @@ import numpy as np
 from ..containers import KeyShapes, Rig, Track
 from ..defaults import DEFAULT_METHOD, DEFAULT_N_KEYS, DEFAULT_REGIONS, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, MAX_ERROR
 from ..exceptions import InputError
+from ..io.atomic import staged_folder
 
 __all__ = ["RunOptions", "TakeSummary", "run_take", "OUTPUT_FILES"]
 
 OUTPUT_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
+# every file a run may write: in a reused folder, those this run did not write are removed
+RUN_OUTPUTS = frozenset(OUTPUT_FILES) | {"preview.mp4", "keyshapes.png", "weights.png", "report.html",
+                                         "correspondence.json", "map.json", "error_vs_k.png",
+                                         "error_vs_k.json", "error_vs_k.csv"}
 
 
 @dataclass(frozen=True)
@@ -63,9 +69,11 @@ class TakeSummary:
     keys: KeyShapes = field(repr=False, compare=False, default=None)
 
 
-def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None) -> tuple[Rig, object, bool, object]:
+def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: Rig | None = None
+                     ) -> tuple[Rig, object, bool, object]:
     """The character, the key -> target mapping, whether the rig file is kept whole, and the
-    :class:`~keyshape.targets._propose.AutoTargets` proposal (None without ``auto_targets``)."""
+    :class:`~keyshape.targets._propose.AutoTargets` proposal (None without ``auto_targets``);
+    ``loaded``: ``options.rig`` read already (by :func:`_read_inputs`)."""
     from ..io.rig import load_rig
     from ..targets import Mapping
 
@@ -80,10 +88,46 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None) -> tuple
         auto = auto_targets(keys, options.rig, correspondence=options.correspondence, front=options.front,
                             normalize=options.normalize, scores=scores)
         return auto.rig, auto.mapping, auto.route == "mapping", auto
-    rig = load_rig(options.rig)
+    rig = loaded if loaded is not None else load_rig(options.rig)
     if options.mapping is not None:
         return rig, Mapping.from_file(options.mapping, targets=rig.names), True, None
     return rig, Mapping.by_name(keys.names, rig.names), True, None
+
+
+def _read_inputs(options: RunOptions, video: Path, track: Track | None) -> tuple[Rig | None, KeyShapes | None]:
+    """Read (and so check) the rig, the mapping and the key set before the tracking starts, so a
+    broken one fails in a second, not after minutes of work; check ``neutral`` against the frame
+    range to track. Returns (the rig or None, the key set or None)."""
+    from ..io.keys_json import load_keys
+    from ..io.rig import load_rig
+
+    rig = load_rig(options.rig) if options.rig is not None else None
+    if options.mapping is not None and rig is not None and not options.auto_targets:
+        from ..targets import Mapping
+
+        Mapping.from_file(options.mapping, targets=rig.names)
+    keys = load_keys(options.keys) if options.keys is not None else None
+    if options.neutral is not None and track is None and keys is None:
+        _check_neutral_in_range(options, video)
+    return rig, keys
+
+
+def _check_neutral_in_range(options: RunOptions, video: Path) -> None:
+    from ..capture import probe
+    from ..exceptions import UsageError
+
+    capture = options.capture
+    declared = probe(video, fps=capture.get("fps")).n_frames
+    end = capture.get("end")
+    last = (min(end, declared) if end is not None and declared else end or declared) - capture.get("start", 0)
+    if last and options.neutral >= last:
+        raise UsageError(f"--neutral must be a frame in 0..{last - 1} (frames of the take, counted from "
+                         f"--start); got {options.neutral}")
+
+
+def _run_owned(name: str) -> bool:
+    """Whether ``name`` is a file ``run_take`` writes (an earlier run's copy of it is stale)."""
+    return name in RUN_OUTPUTS or name.startswith("animation.")
 
 
 def _error_pct(solved, keys: KeyShapes) -> float:
@@ -131,28 +175,24 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     Everything is staged and moved into ``outdir`` at the end; on error nothing is moved.
     """
     from ..capture import track_video
-    from ..io.keys_json import load_keys
     from ._pipeline import discover_keys, key_scores, solve_take
 
     start = time.perf_counter()
     video, outdir = Path(video), Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
+    loaded_rig, keys = _read_inputs(options, video, track)
     if track is None:
         track = track_video(video, progress=progress, **options.capture)
-    if options.keys is not None:
-        keys = load_keys(options.keys)
-    else:
+    if keys is None:
         keys = discover_keys(track, regions=options.regions, n_keys=options.n_keys,
                              method=options.method, neutral=options.neutral, take=video.name,
                              upper=options.upper, max_error=options.max_error)
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
     scores = key_scores(keys, track) if options.keys is None else None  # reused keys: frames of other takes
-    rig, mapping, keep_file, auto = _rig_and_mapping(options, keys, scores)
-    outdir.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
-    try:
+    rig, mapping, keep_file, auto = _rig_and_mapping(options, keys, scores, loaded_rig)
+    with staged_folder(outdir, owned=_run_owned) as stage:  # stale outputs of an earlier run go
         _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file)
         if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
             auto.correspondence.save(stage / "correspondence.json")
@@ -163,11 +203,6 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
 
             write_take_extras(stage, progress=progress, preview=options.preview)
         files = tuple(sorted(p.name for p in stage.iterdir()))
-        outdir.mkdir(exist_ok=True)
-        for name in files:
-            (stage / name).replace(outdir / name)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
     return TakeSummary(video.name, track.n_frames, float(track.valid.mean()),
                        {r: len(keys.keys_of(r)) for r in keys.regions}, _error_pct(solved, keys),
                        str(solved.gaps), files, time.perf_counter() - start, keys)

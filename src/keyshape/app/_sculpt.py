@@ -30,9 +30,9 @@ import numpy as np
 
 from ..containers import KeyShapes, Rig, Track, Weights
 from ..exceptions import InputError, RigError
-from ..io.atomic import atomic_path
+from ..io.atomic import atomic_path, staged_folder
 
-__all__ = ["SculptKit", "sculpt_targets", "write_sculpt_kit", "contact_sheet", "Proposer"]
+__all__ = ["SculptKit", "sculpt_targets", "write_sculpt_kit", "check_kit_folder", "contact_sheet", "Proposer"]
 
 Proposer = Callable[[KeyShapes, Rig], np.ndarray]
 GLB, SHEET, README = "sculpt.glb", "keys.png", "README.md"
@@ -84,7 +84,7 @@ def sculpt_targets(keys: KeyShapes, neutral: Rig, *, propose: Proposer | None = 
 
 
 def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit: float = 1.0,
-                     meshes=None, propose: Proposer | None = None) -> SculptKit:
+                     meshes=None, propose: Proposer | None = None, overwrite: bool = False) -> SculptKit:
     """Write the sculpt kit for ``keys`` on the character ``rig`` into ``folder``.
 
     Parameters
@@ -105,20 +105,35 @@ def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit:
         glTF meshes to put the targets on; default: those with morph targets, else all.
     propose : callable, optional, keyword-only
         Starting targets (see :func:`sculpt_targets`).
+    overwrite : bool, keyword-only
+        Replace a kit already in ``folder``. By default a folder holding any of the kit's files
+        is refused: its ``sculpt.glb`` may be an artist's work.
 
     Returns
     -------
     SculptKit
+
+    The three files are written together or not at all (staged beside ``folder``).
     """
     folder, rig = Path(folder), Path(rig)
+    check_kit_folder(folder, overwrite=overwrite)
     _check_track(keys, track)
     is_gltf = rig.suffix.lower() in (".glb", ".gltf")
     neutral = _neutral(rig, unit=unit, meshes=meshes)
     targets = sculpt_targets(keys, neutral, propose=propose)
-    glb = _write_glb(rig if is_gltf else None, folder / GLB, targets, meshes)
-    sheet = contact_sheet(keys, track, video, folder / SHEET)
-    readme = _write_readme(folder / README, keys, track, Path(video), rig, targets)
-    return SculptKit(folder, glb, sheet, readme)
+    with staged_folder(folder) as stage:
+        _write_glb(rig if is_gltf else None, stage / GLB, targets, meshes)
+        contact_sheet(keys, track, video, stage / SHEET)
+        _write_readme(stage / README, keys, track, Path(video), rig, targets)
+    return SculptKit(folder, folder / GLB, folder / SHEET, folder / README)
+
+
+def check_kit_folder(folder, *, overwrite: bool = False) -> None:
+    """Refuse a ``folder`` that holds a kit already (any of its files), unless ``overwrite``."""
+    existing = [name for name in (GLB, SHEET, README) if (Path(folder) / name).exists()]
+    if existing and not overwrite:
+        raise InputError(f"{folder}: already holds a sculpt kit ({', '.join(existing)}), maybe sculpted; "
+                         "choose another folder, or replace it with --force (overwrite=True)")
 
 
 def _check_track(keys: KeyShapes, track: Track) -> None:
@@ -174,7 +189,7 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
     """
     from PIL import Image, ImageDraw
 
-    frames = _decode(video, {int(keys.neutral_frame), *(int(f) for f in keys.frames)})
+    frames = _decode(video, {int(keys.neutral_frame), *(int(f) for f in keys.frames)}, track.frame_index)
     regions = list(keys.regions)
     columns = 1 + max(len(keys.keys_of(r)) for r in regions)
     label, title = 34, 30
@@ -192,7 +207,7 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
             sheet.paste(picture, (x, y))
             caption = f"{name}  ({region})" if name == "neutral" else name
             draw.text((x + 6, y + cell + 2), caption, fill=colour, font=_font(15))
-            draw.text((x + 6, y + cell + 18), f"frame {frame}  {frame / track.fps:.2f} s",
+            draw.text((x + 6, y + cell + 18), f"frame {track.frame_index[frame]}  {track.time[frame]:.2f} s",
                       fill=(200, 200, 200), font=_font(12))
     with atomic_path(path) as tmp:
         sheet.save(tmp, format="PNG")
@@ -205,15 +220,18 @@ def _font(size: int):
     return ImageFont.load_default(size=size)
 
 
-def _decode(video, wanted: set[int]) -> dict[int, np.ndarray]:
+def _decode(video, wanted: set[int], source: np.ndarray) -> dict[int, np.ndarray]:
+    """The video frames of the track rows ``wanted``, by row; ``source`` is the track's
+    ``frame_index`` (row -> the video's frame number)."""
     from ..capture.video import iter_frames
 
+    rows = {int(source[r]): r for r in wanted}
     found, count = {}, 0
-    for index, (_, rgb) in enumerate(iter_frames(video, end=max(wanted) + 1)):
+    for index, (_, rgb) in enumerate(iter_frames(video, end=max(rows) + 1)):
         count = index + 1
-        if index in wanted:
-            found[index] = rgb
-    missing = sorted(wanted - set(found))
+        if index in rows:
+            found[rows[index]] = rgb
+    missing = sorted(set(rows) - {int(source[r]) for r in found})
     if missing:
         raise InputError(f"{video}: has no frame {missing[0]} (it has {count} frames); "
                          "give the video the keys come from")
@@ -255,8 +273,8 @@ def _face_box(points: np.ndarray, image_size) -> tuple[int, int, int, int]:
 
 
 def _write_readme(path: Path, keys: KeyShapes, track: Track, video: Path, rig: Path, targets: Rig) -> Path:
-    rows = [f"| `{keys.names[k]}` | {keys.key_regions[k]} | {int(keys.frames[k])} | "
-            f"{keys.frames[k] / track.fps:.2f} |" for k in range(keys.n_keys)]
+    rows = [f"| `{keys.names[k]}` | {keys.key_regions[k]} | {int(track.frame_index[keys.frames[k]])} | "
+            f"{track.time[keys.frames[k]]:.2f} |" for k in range(keys.n_keys)]
     text = _README.format(n_keys=keys.n_keys, video=video.name, rig=rig.name, n_vertices=targets.n_vertices,
                           neutral=int(keys.neutral_frame), table="\n".join(rows), first=keys.names[0])
     with atomic_path(path) as tmp:

@@ -172,3 +172,11 @@ def check_frame_range(parser, args) -> None:
     end = getattr(args, "end", None)
     if end is not None and end <= args.start:
         parser.error(f"--end must be after --start; got --start {args.start} --end {end}")
+
+
+def shell_command(*words) -> str:
+    """A command line to print for the user to paste: every word shell-quoted
+    (``keyshape view 'uni dir/out'``)."""
+    import shlex
+
+    return " ".join(shlex.quote(str(w)) for w in words)

@@ -1,8 +1,10 @@
 """``keyshape batch``: many takes, on every local core (Ray) or an existing Ray cluster.
 
 Each take is written to ``OUTDIR/<take stem>/`` as ``keyshape run`` writes it; finished takes
-are skipped on a rerun; a failed take is reported and the others go on. The summary table is
-printed and written to ``OUTDIR/summary.csv``; the exit code is 1 if any take failed.
+are skipped on a rerun when their manifest (``batch.json``: the video's fingerprint and the
+options) still matches, and ``--force`` reruns them all; a failed take is reported and the
+others go on. The summary table is printed and written to ``OUTDIR/summary.csv``; the exit code
+is 1 if any take failed.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from ..exceptions import KeyshapeError
 DESCRIPTION = (
     "Run track -> keys -> solve -> retarget -> exports for every take, each into OUTDIR/<take stem>/. "
     "TAKES are video files and/or folders (every video directly inside). Takes already finished in "
-    "OUTDIR are skipped; a take that fails is reported and the others go on. With Ray installed "
+    "OUTDIR from the same video and options are skipped (--force reruns them); a take that fails is "
+    "reported and the others go on. With Ray installed "
     "(pip install \"keyshape[ray]\") the takes run in parallel on a private local Ray instance, one "
     "worker per core, or on a running cluster with --address; without Ray, or with --sequential, "
     "they run one after the other with the same outputs. Writes OUTDIR/summary.csv; exit code 1 "
@@ -82,7 +85,7 @@ def run(args) -> None:
             print(f"{row.status:>7}  {row.take}{detail}", file=sys.stderr, flush=True)
 
     rows = batch(args.takes, args.output, options, shared_keys=args.shared_keys, runner=runner,
-                 on_row=say)
+                 on_row=say, force=args.force)
     if not args.quiet:
         print(format_table(rows))
         print(f"wrote {args.output / 'summary.csv'}")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from ..exceptions import InputError
 from ._argtypes import positive
-from ._options import add_correspondence_option, add_normalize_option, add_rig_options, mesh_choice
+from ._options import add_correspondence_option, add_normalize_option, add_rig_options, mesh_choice, shell_command
 
 DESCRIPTION = (
     "Propose, for every key shape, the character's version of it, so the character moves without "
@@ -95,8 +95,9 @@ def _propose_mapping(args, keys, rig, colours) -> None:
     mapping = propose_mapping(keys, rig, correspondence=corr, normalize=args.normalize)
     mapping.save(args.output)
     if not args.quiet:
+        then = shell_command("keyshape", "retarget", "WEIGHTS.csv", "--rig", args.rig, "--map", args.output)
         print(f"{args.output}: {mapping.n_keys} keys -> {mapping.n_targets} targets "
-              f"(edit the gains, then `keyshape retarget WEIGHTS.csv --rig {args.rig} --map {args.output}`)")
+              f"(edit the gains, then `{then}`)")
         for key, gains in mapping.to_dict().items():
             top = sorted(gains.items(), key=lambda item: -item[1])[:4]
             shown = ", ".join(f"{t} {g:.2f}" for t, g in top) or "nothing (no target reproduces it: map by hand)"
@@ -113,7 +114,7 @@ def _propose_targets(args, keys, rig, source, colours) -> None:
     if not args.quiet:
         print(f"{written}: {auto.rig.n_targets} proposed targets named after the keys on "
               f"{args.rig or 'the built-in stylised head'} ({auto.rig.n_vertices} vertices); drive it with "
-              f"`keyshape retarget WEIGHTS.csv --rig {written}`")
+              f"`{shell_command('keyshape', 'retarget', 'WEIGHTS.csv', '--rig', written)}`")
 
 
 def _write_targets(output: Path, rig, source, meshes) -> Path:

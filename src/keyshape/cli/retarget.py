@@ -96,6 +96,11 @@ def _poses(args, weights):
     track = load_track(args.track)
     if track.n_frames != weights.n_frames:
         raise InputError(f"{args.track}: has {track.n_frames} frames but {args.weights} has {weights.n_frames}")
+    differ = (track.frame_index != weights.frame_index).nonzero()[0]
+    if differ.size:
+        i = int(differ[0])
+        raise InputError(f"{args.weights}: row {i} is frame {weights.frame_index[i]} but row {i} of {args.track} "
+                         f"is frame {track.frame_index[i]}: give the track the weights were solved from")
     return head_and_gaze(track)
 
 

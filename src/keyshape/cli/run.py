@@ -14,6 +14,7 @@ from ._options import (
     describe_keys,
     progress,
     say,
+    shell_command,
     solve_kwargs,
 )
 
@@ -67,4 +68,5 @@ def run(args) -> None:
     say(args, f"keys: {describe_keys(keys)}")
     say(args, f"fit: RMS error {summary.error_pct:.2f} % of the inter-ocular distance; gaps: {summary.gaps}")
     say(args, f"wrote {args.output}/: {', '.join(summary.files)} in {summary.seconds:.1f} s")
-    say(args, f"see it: open {args.output / 'report.html'} or run `keyshape view {args.output}`")
+    say(args, f"see it: open {shell_command(args.output / 'report.html')} or run "
+              f"`{shell_command('keyshape', 'view', args.output)}`")

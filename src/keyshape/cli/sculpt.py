@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from ..exceptions import InputError
@@ -32,21 +31,35 @@ def add_arguments(p) -> None:
                    help="the take's track (default: track.npz beside KEYS.json, else the video is tracked)")
     add_rig_options(p, meshes="to put the targets on")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="KIT/")
+    p.add_argument("--force", action="store_true",
+                   help="replace a kit already in KIT/ (default: refused, its sculpt.glb may hold an artist's work)")
 
 
 def run(args) -> None:
-    from ..app import write_sculpt_kit
+    from ..app import check_kit_folder, write_sculpt_kit
     from ..io.keys_json import load_keys
     from ..io.rig import parse_unit
 
     keys = load_keys(args.keys)
+    check_kit_folder(args.output, overwrite=args.force)  # before any tracking
+    _check_rig(args.rig)
     video = _video(args)
     track = _track(args, video)
     kit = write_sculpt_kit(keys, args.rig, args.output, track=track, video=video,
-                           unit=parse_unit(args.rig_unit), meshes=mesh_choice(args.mesh))
+                           unit=parse_unit(args.rig_unit), meshes=mesh_choice(args.mesh), overwrite=args.force)
     if not args.quiet:
         print(f"{kit.folder}: {kit.glb.name} ({keys.n_keys} targets to sculpt), {kit.sheet.name}, "
               f"{kit.readme.name}")
+
+
+def _check_rig(rig: Path) -> None:
+    """The character must exist (a .glb must look like one) before the take is tracked."""
+    if not rig.exists():
+        raise InputError(f"{rig}: file not found")
+    if rig.suffix.lower() == ".glb":
+        from ..io.validate import check_glb
+
+        check_glb(rig)
 
 
 def _video(args) -> Path:
@@ -54,10 +67,12 @@ def _video(args) -> Path:
         return args.video
     info = args.keys.parent / "take.json"
     if info.is_file():
-        try:
-            return Path(json.loads(info.read_text())["video"])
-        except (ValueError, KeyError, TypeError):
-            raise InputError(f"{info}: has no readable \"video\" entry; give --video") from None
+        from ..io.take import load_take_info
+
+        video = load_take_info(args.keys.parent).get("video")
+        if not video:
+            raise InputError(f"{info}: names no video; give --video")
+        return Path(video)
     raise InputError(f"give --video: the take's video (no take.json beside {args.keys})")
 
 
@@ -70,5 +85,6 @@ def _track(args, video: Path):
     if beside.is_file():
         return load_track(beside)
     from ..capture import track_video
+    from ._options import progress
 
-    return track_video(video, progress=not args.quiet)
+    return track_video(video, progress=progress(args))

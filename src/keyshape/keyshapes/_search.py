@@ -66,7 +66,7 @@ import numpy as np
 from ..containers import KeyShapes, Track
 from ..decompose import check_upper
 from ..defaults import DEFAULT_METHOD, DEFAULT_N_KEYS, DEFAULT_UPPER, MAX_ERROR, MAX_KEYS
-from ..exceptions import InputError
+from ..exceptions import InputError, UsageError
 from ..metrics import face_scale
 from . import _select
 
@@ -358,7 +358,8 @@ def check_neutral_frame(track: Track, frame, *, name: str = "neutral_frame") -> 
     """``frame`` as an int if it is a frame of ``track`` with a face; ``name`` is the argument's
     name in the message (``--neutral`` on the command line)."""
     if not isinstance(frame, (int, np.integer)) or not 0 <= frame < track.n_frames:
-        raise InputError(f"{name} must be a frame in 0..{track.n_frames - 1}; got {frame!r}")
+        kind = UsageError if name.startswith("--") else InputError  # a command-line option: exit code 2
+        raise kind(f"{name} must be a frame in 0..{track.n_frames - 1}; got {frame!r}")
     if not track.valid[frame]:
         raise InputError(f"{name} frame {frame} has no face; choose a frame where the face was found")
     return int(frame)

@@ -155,16 +155,22 @@ def _canvas_size(track: Track) -> tuple[int, int]:
 
 
 def _source_frames(video, track: Track, height: int) -> Iterator[np.ndarray]:
-    """Exactly ``track.n_frames`` pictures scaled to ``height``: the video's, the last one held."""
+    """Exactly ``track.n_frames`` pictures scaled to ``height``: the video frames the track's
+    rows come from (``track.frame_index``: a take tracked from ``--start 24`` shows frame 24
+    first), the last one held."""
     yielded, last = 0, None
     if video is not None and Path(video).is_file():
         from ..capture.video import iter_frames
 
-        frames = iter_frames(video)
+        wanted = track.frame_index
+        first = int(wanted[0])
+        frames = iter_frames(video, start=first, end=int(wanted[-1]) + 1)
         try:
-            for _, rgb in frames:
+            for index, (_, rgb) in enumerate(frames, start=first):
                 if yielded == track.n_frames:
                     break
+                if index != wanted[yielded]:
+                    continue
                 last = resize_to_height(rgb, height)
                 yielded += 1
                 yield last
@@ -187,7 +193,7 @@ def _progress(iterable, total: int, enabled: bool):
         return iterable
     from tqdm import tqdm
 
-    return tqdm(iterable, total=total, desc="preview", unit="frame")
+    return tqdm(iterable, total=total, desc="preview", unit="frame", disable=None)  # None: only on a terminal
 
 
 def _channel_colours(names, keys: KeyShapes | None) -> np.ndarray:
@@ -213,7 +219,8 @@ class _LandmarkOverlay:
         points = self.track.points[index, :, :2] * self.scale
         valid = bool(self.track.valid[index])
         out = draw_landmarks(image, points, self.colours, edges=self.edges, radius=self.radii) if valid else image
-        label = f"frame {index}   {index / self.track.fps:6.2f} s" + ("" if valid else "   no face")
+        label = (f"frame {self.track.frame_index[index]}   {self.track.time[index]:6.2f} s"
+                 + ("" if valid else "   no face"))
         return caption(out, label)
 
 

@@ -130,19 +130,23 @@ class _Take:
 def _load_take(outdir: Path) -> _Take:
     from ..alignment import align
     from ..io.keys_json import load_keys
-    from ..io.take import load_take_info
+    from ..io.take import load_take_info, take_video
     from ..io.track import load_track
+    from ..io.validate import check_glb
     from ..io.weights_csv import load_weights_csv
 
     info = load_take_info(outdir)
     files = info.get("files") or {}
+    animation = outdir / files.get("animation", "animation.glb")
+    if animation.is_file():
+        check_glb(animation)  # a damaged one is said even when no preview is made
     track = load_track(outdir / files.get("track", "track.npz"))
     keys = load_keys(outdir / files.get("keys", "keys.json"))
     weights = load_weights_csv(outdir / files.get("weights", "weights.csv"))
     if weights.n_frames != track.n_frames:
         raise InputError(f"{outdir}: the weights have {weights.n_frames} frames but the track has {track.n_frames}")
     aligned, _ = align(track, reference=keys.neutral, stable=_stable(keys))
-    video = Path(info["video"]) if info.get("video") and Path(info["video"]).is_file() else None
+    video = take_video(outdir, info)  # a gone video is said, once
     name = Path(info["video"]).name if info.get("video") else outdir.name
     return _Take(info, name, video, track, keys, weights, aligned)
 
@@ -150,8 +154,10 @@ def _load_take(outdir: Path) -> _Take:
 def _pictures(outdir: Path, take: _Take, fit: FitQuality, k_table) -> dict[str, Path]:
     from . import plots
 
-    frames = [int(take.keys.neutral_frame), *take.keys.frames.tolist()]
-    images = _read_frames(take.video, frames)
+    frames = [f for f in [int(take.keys.neutral_frame), *take.keys.frames.tolist()] if f < take.track.n_frames]
+    source = take.track.frame_index  # track row -> the video's frame number
+    found = _read_frames(take.video, [int(source[f]) for f in frames])
+    images = {f: found[int(source[f])] for f in frames if int(source[f]) in found}
     names = (take.name, take.info.get("files", {}).get("track", "track.npz"))
     out = {"keyshapes": plots.contact_sheet(take.keys, take.track, images, outdir / "keyshapes.png",
                                             take=names),
@@ -220,12 +226,19 @@ def write_take_preview(outdir, path=None, *, progress: bool = True, backend: str
 def _preview(outdir: Path, take: _Take, *, path=None, progress: bool, backend: str,
              height: int | None = None) -> Path | None:
     from ..io.gltf import read_glb_animation, read_rig
+    from ..io.validate import check_glb
     from ..render.preview import render_preview, rotations_from_quaternions
 
     glb = outdir / take.info["files"].get("animation", "animation.glb")
     if not glb.is_file():
         return None
-    rig, animation = read_rig(glb), read_glb_animation(glb)
+    check_glb(glb)
+    try:
+        rig, animation = read_rig(glb), read_glb_animation(glb)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"{glb}: a damaged .glb ({exc.__class__.__name__}: {exc})") from None
     order = [animation.names.index(n) for n in rig.names] if animation.names else list(range(rig.n_targets))
     rotations = None if animation.rotations is None else rotations_from_quaternions(animation.rotations)
     return render_preview(take.track, take.weights, rig, path or outdir / "preview.mp4", video=take.video,
