@@ -41,6 +41,23 @@ export class Character {
     this.scene.updateMatrixWorld(true);
   }
 
+  /** Set the influences of the targets named in `names` to `values` (live mode); others keep theirs. */
+  setInfluences(names, values) {
+    for (const mesh of this.meshes) {
+      const index = mesh.morphTargetDictionary || {};
+      names.forEach((name, i) => {
+        const k = index[name];
+        if (k !== undefined) mesh.morphTargetInfluences[k] = values[i];
+      });
+    }
+  }
+
+  /** Turn the head node to the quaternion [x, y, z, w] (live mode). */
+  setRotation(q) {
+    this.head.quaternion.fromArray(q);
+    this.scene.updateMatrixWorld(true);
+  }
+
   /** Current influence of each morph target, in target order. */
   values() {
     return Array.from(this.mesh.morphTargetInfluences);

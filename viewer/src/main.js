@@ -8,6 +8,7 @@
 
 import { Character } from './character.js';
 import { TimerClock, VideoClock } from './clock.js';
+import { runLive } from './live.js';
 import { WeightsPanel } from './panel.js';
 import { Stage } from './stage.js';
 
@@ -18,6 +19,7 @@ window.keyshape = hook;
 
 async function main() {
   const take = await fetchJson('/api/take');
+  if (take.live) return runLive(take, hook, $, notice); // keyshape live --view
   const fps = take.fps;
   const lastFrame = take.n_frames - 1;
   const frameAt = (t) => Math.min(Math.max(Math.round(t * fps), 0), lastFrame);

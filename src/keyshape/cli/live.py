@@ -145,13 +145,13 @@ def _session(args, source, keys):
                                       fps=source.fps, subject=args.subject))
     if args.record:
         outputs.append(Recorder(args.record, keys, fps=source.fps, image_size=source.size, rig=targets.rig,
-                                mapping=targets.mapping if targets.rig is not None else None,
+                                mapping=None if targets.builtin else targets.mapping,
                                 source=source.spec, blendshape_names=BLENDSHAPE_NAMES))
     if args.view:
         from ..viewer.live import LiveView
 
-        view = LiveView(targets.rig, fps=source.fps, port=args.port, builtin=targets.builtin,
-                        name=source.name)
+        view = LiveView(targets.rig, fps=source.fps, port=args.port, name=source.name,
+                        key_names=keys.names if targets.builtin else None)
         print(f"viewer at {view.url}", flush=True)
         if not args.no_browser:
             from .view import _has_display

@@ -33,9 +33,10 @@ def live_targets(keys: KeyShapes, *, rig: Path | None = None, mapping: Path | No
     from ..targets import Mapping
 
     if rig is None:
-        if mapping is not None:
+        if mapping is not None:  # the viewer and the recording show keyshape's head, by the key names
             loaded = Mapping.from_file(mapping)
-            return LiveTargets(tuple(loaded.targets), loaded, None, False)
+            character = _builtin(keys) if need_rig else None
+            return LiveTargets(tuple(loaded.targets), loaded, character, character is not None)
         character = _builtin(keys) if need_rig else None
         return LiveTargets(tuple(keys.names), None, character, character is not None)
     if auto_targets:
