@@ -6,9 +6,15 @@ imports MediaPipe for the scheme; ``tests/test_schemes.py`` checks the JSON stil
 Everything is derived from ``vision.FaceLandmarksConnections`` (contours and tessellation).
 The one geometric choice — which face-oval points belong to the jaw — uses the neutral
 frame of the embedded clip: oval points below the nose tip (landmark 1).
+
+The left-right pairing (``mirror``: landmark i's mirror image is landmark ``mirror[i]``) comes
+from MediaPipe's canonical face, which is exactly symmetric about x = 0: each of its 468 vertices
+reflected lands on its partner. The ten iris points (not in the canonical face) are paired on
+the embedded clip's first frame, reflected through the symmetry plane the 468 pairs define.
 """
 
 import json
+import sys
 from pathlib import Path
 
 import av
@@ -58,6 +64,32 @@ def neutral_points():
     return np.array([[p.x, p.y, p.z] for p in res.face_landmarks[0]])
 
 
+def mirror_pairs(pts):
+    """(478,) int: the left-right partner of every landmark (see the module notes)."""
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial import cKDTree
+
+    sys.path.insert(0, str(ROOT / "src"))
+    from keyshape.capture.model_file import canonical_face
+
+    canonical, _ = canonical_face()
+    distance, pair = cKDTree(canonical).query(canonical * [-1.0, 1.0, 1.0])
+    assert distance.max() < 1e-6 and (pair[pair] == np.arange(468)).all()
+    pts = pts * [1.0, 1.0, 0.0]  # the irises' depth is MediaPipe's guess; pair them in the image plane
+    moved = pts[:468] - pts[pair]
+    normal = np.linalg.svd(moved, full_matrices=False)[2][0]
+    offset = float(np.mean((pts[:468] + pts[pair]) @ normal) / 2)
+    iris = np.arange(468, 478)
+    reflected = pts[iris] - 2 * (pts[iris] @ normal - offset)[:, None] * normal
+    cost = ((reflected[:, None] - pts[iris][None]) ** 2).sum(-1)
+    cost[np.arange(10), np.arange(10)] = np.inf  # no iris point is its own mirror
+    cost[:5, :5] = cost[5:, 5:] = np.inf  # the partner lies in the other iris
+    rows, cols = linear_sum_assignment(cost)
+    out = np.concatenate([pair, iris[cols[np.argsort(rows)]]])
+    assert (out[out] == np.arange(478)).all()
+    return [int(i) for i in out]
+
+
 def main():
     pts = neutral_points()
     oval = ids(C.FACE_LANDMARKS_FACE_OVAL)
@@ -94,6 +126,7 @@ def main():
         },
         "stable": STABLE,
         "triangles": triangles(C.FACE_LANDMARKS_TESSELATION),
+        "mirror": mirror_pairs(pts),
     }
     (DATA / "mediapipe478.json").write_text(json.dumps(scheme, separators=(",", ":")) + "\n")
     print(f"wrote {DATA / 'mediapipe478.json'}: {len(scheme['triangles'])} triangles, jaw {len(jaw)} points")

@@ -236,6 +236,9 @@ class KeyShapes:
     neutral_frame : int
     neutral_take : str
     method : str
+    stable : (n_stable,) int or None, the landmarks the takes were aligned on
+    mirror_of : tuple of n_keys str: for a mirrored key (its source key's shape reflected
+        through the face's symmetry plane), the source key's name; "" for a key that is a frame
     """
 
     neutral: np.ndarray
@@ -249,6 +252,7 @@ class KeyShapes:
     neutral_take: str = ""
     method: str = ""
     stable: np.ndarray | None = field(default=None)
+    mirror_of: tuple[str, ...] = ()
 
     def __post_init__(self):
         neutral = np.asarray(self.neutral, dtype=float)
@@ -264,6 +268,14 @@ class KeyShapes:
         unknown = set(regions_of) - set(regions)
         if unknown:
             raise InputError(f"keys refer to unknown regions {sorted(unknown)}")
+        mirror_of = tuple(str(m) for m in self.mirror_of) if self.mirror_of else ("",) * k
+        if len(mirror_of) != k:
+            raise InputError(f"{k} key deltas need {k} mirror_of entries; got {len(mirror_of)}")
+        for name, source in zip(names, mirror_of):
+            if source and (source not in names or source == name or mirror_of[names.index(source)]):
+                raise InputError(f"key {name!r} is marked as the mirror of {source!r}, which is not "
+                                 f"another key of the set that is a frame")
+        object.__setattr__(self, "mirror_of", mirror_of)
         object.__setattr__(self, "neutral", _frozen(neutral))
         object.__setattr__(self, "deltas", _frozen(deltas))
         object.__setattr__(self, "names", names)
@@ -282,13 +294,19 @@ class KeyShapes:
         """(n_region_keys,) int: indices of the keys belonging to ``region``."""
         return np.flatnonzero([r == region for r in self.key_regions])
 
+    @property
+    def mirrored(self) -> np.ndarray:
+        """(n_keys,) bool: which keys are mirror images of another key."""
+        return np.array([bool(m) for m in self.mirror_of], dtype=bool)
+
     def pose(self, weights: np.ndarray) -> np.ndarray:
         """Landmarks ``(n_frames, n_landmarks, n_dims)`` for weights ``(n_frames, n_keys)``."""
         return blend(self.neutral, self.deltas, np.nan_to_num(np.asarray(weights, dtype=float)))
 
     def __repr__(self) -> str:
         per = {r: len(self.keys_of(r)) for r in self.regions}
-        return f"KeyShapes(n_keys={self.n_keys}, per_region={per}, method={self.method!r})"
+        mirrored = f", mirrored={int(self.mirrored.sum())}" if self.mirrored.any() else ""
+        return f"KeyShapes(n_keys={self.n_keys}, per_region={per}{mirrored}, method={self.method!r})"
 
 
 @dataclass(frozen=True, eq=False)

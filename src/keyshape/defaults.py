@@ -7,4 +7,5 @@ MAX_ERROR = 2.0  # % of the inter-ocular distance: the default target of n_keys=
 MAX_KEYS = 24  # default cap of n_keys="auto" per region: a sculpt list an artist can still make
 DEFAULT_SMOOTHNESS = 0.1  # zero-lag temporal smoothness of the solve (decompose.solve_weights)
 DEFAULT_UPPER = 1.0  # upper bound of every key weight
+DEFAULT_MIRROR = True  # add each key's left-right mirror where it adds reach (keyshapes.add_mirrors)
 FRONTS = ("auto", "+z", "-z", "+x", "-x", "+y", "-y")  # the axis a character faces (targets.find_correspondence)

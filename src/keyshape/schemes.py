@@ -30,6 +30,7 @@ import numpy as np
 from .exceptions import InputError
 
 __all__ = ["REGION_SCHEMES", "resolve_regions", "stable_points", "face_triangles", "mediapipe_scheme", "eye_corners",
+           "mirror_pairs",
            "IMAGE_TO_GLTF", "as_xyz", "points_to_gltf", "rotations_to_gltf", "head_rotations", "hold_valid"]
 
 REGION_SCHEMES = ("upper-lower", "whole", "eyes")
@@ -142,6 +143,33 @@ def eye_corners(n_landmarks: int) -> tuple[int, int] | None:
         return 33, 263
     if n_landmarks == 68:
         return 36, 45
+    return None
+
+
+def mirror_pairs(n_landmarks: int) -> np.ndarray | None:
+    """(n_landmarks,) int: the left-right partner of every landmark (itself on the midline), or None.
+
+    MediaPipe's from its canonical face (``tools/gen_mediapipe_scheme.py``), iBUG 68's from the
+    markup; None for other schemes (:func:`keyshape.keyshapes.find_mirror_pairs` finds one from a
+    neutral shape).
+
+    Examples
+    --------
+    >>> pairs = mirror_pairs(68)
+    >>> int(pairs[36]), int(pairs[45]), int(pairs[30])  # outer eye corners swap; the nose tip stays
+    (45, 36, 30)
+    """
+    if n_landmarks in (468, 478):
+        return np.array(mediapipe_scheme()["mirror"][:n_landmarks], dtype=np.int64)
+    if n_landmarks == 68:
+        pairs = np.arange(68)
+        groups = [(range(17), range(16, -1, -1)), (range(17, 22), range(26, 21, -1)),
+                  ((31, 32), (35, 34)), ((36, 37, 38, 39, 40, 41), (45, 44, 43, 42, 47, 46)),
+                  ((48, 49, 50, 55, 56, 60, 61, 65), (54, 53, 52, 59, 58, 64, 63, 67))]
+        for left, right in groups:
+            pairs[list(left)] = list(right)
+            pairs[list(right)] = list(left)
+        return pairs
     return None
 
 

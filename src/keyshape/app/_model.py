@@ -9,7 +9,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ..containers import KeyShapes, Track, Weights
-from ..defaults import DEFAULT_METHOD, DEFAULT_N_KEYS, DEFAULT_REGIONS, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, MAX_ERROR
+from ..defaults import (
+    DEFAULT_METHOD,
+    DEFAULT_MIRROR,
+    DEFAULT_N_KEYS,
+    DEFAULT_REGIONS,
+    DEFAULT_SMOOTHNESS,
+    DEFAULT_UPPER,
+    MAX_ERROR,
+)
 from ..exceptions import NotFittedError
 from ._pipeline import discover_keys, solve_take
 
@@ -37,19 +45,22 @@ class KeyShapeModel:
         Also require each region's weights to sum to at most 1.
     max_error : float, keyword-only
         Target of ``n_keys="auto"``, % of the inter-ocular distance.
+    mirror : bool, keyword-only
+        Add each key's left-right mirror where it reaches what the keys cannot
+        (:func:`keyshape.keyshapes.add_mirrors`).
 
     Attributes
     ----------
     keyshapes_ : KeyShapes
         The key set found by :meth:`fit`.
     n_keys_ : int
-        Keys over all regions.
+        Keys over all regions, mirrored keys included.
 
     Examples
     --------
     >>> from keyshape.datasets import make_performance
     >>> perf = make_performance(n_frames=80, random_state=0)
-    >>> model = KeyShapeModel(4, regions=perf.regions, stable=perf.stable, smoothness=0)
+    >>> model = KeyShapeModel(4, regions=perf.regions, stable=perf.stable, smoothness=0, mirror=False)
     >>> weights = model.fit(perf.track).transform(perf.track)
     >>> weights.values.shape, model.n_keys_
     ((80, 8), 8)
@@ -57,7 +68,8 @@ class KeyShapeModel:
 
     def __init__(self, n_keys: int | str = DEFAULT_N_KEYS, *, method: str = DEFAULT_METHOD, regions=DEFAULT_REGIONS,
                  neutral: int | None = None, stable=None, upper: float | None = DEFAULT_UPPER,
-                 smoothness: float = DEFAULT_SMOOTHNESS, convex: bool = False, max_error: float = MAX_ERROR):
+                 smoothness: float = DEFAULT_SMOOTHNESS, convex: bool = False, max_error: float = MAX_ERROR,
+                 mirror: bool = DEFAULT_MIRROR):
         self.n_keys = n_keys
         self.method = method
         self.regions = regions
@@ -67,6 +79,7 @@ class KeyShapeModel:
         self.smoothness = smoothness
         self.convex = convex
         self.max_error = max_error
+        self.mirror = mirror
 
     def fit(self, tracks: Track | Sequence[Track], y=None) -> KeyShapeModel:
         """Discover the key shapes of the take(s) (:func:`keyshape.discover_keys`); returns ``self``.
@@ -75,7 +88,7 @@ class KeyShapeModel:
         """
         self.keyshapes_ = discover_keys(tracks, regions=self.regions, n_keys=self.n_keys, method=self.method,
                                         neutral=self.neutral, stable=self.stable, upper=self.upper,
-                                        max_error=self.max_error)
+                                        max_error=self.max_error, mirror=self.mirror)
         self.n_keys_ = self.keyshapes_.n_keys
         return self
 

@@ -19,6 +19,7 @@ from ..containers import KeyShapes, Poses, Track, Weights
 from ..decompose import solve_weights
 from ..defaults import (
     DEFAULT_METHOD,
+    DEFAULT_MIRROR,
     DEFAULT_N_KEYS,
     DEFAULT_REGIONS,
     DEFAULT_SMOOTHNESS,
@@ -26,11 +27,12 @@ from ..defaults import (
     MAX_ERROR,
 )
 from ..exceptions import InputError
-from ..keyshapes import check_neutral_frame, find_keyshapes
+from ..keyshapes import MIN_REACH, add_mirrors, check_neutral_frame, extend_keyshapes, find_keyshapes, region_errors
 from ..metrics import face_scale, reconstruction_error
 from ..schemes import resolve_regions, stable_points
 
-__all__ = ["discover_keys", "solve_take", "fit_errors", "head_and_gaze", "arkit_scores", "key_scores", "Solved"]
+__all__ = ["discover_keys", "extend_keys", "coverage", "Coverage", "solve_take", "fit_errors", "head_and_gaze",
+           "arkit_scores", "key_scores", "Solved"]
 
 
 def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray) -> int:
@@ -42,7 +44,8 @@ def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray) -> int
 def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = DEFAULT_REGIONS,
                   n_keys: int | str = DEFAULT_N_KEYS, method: str = DEFAULT_METHOD, neutral: int | None = None,
                   take: str | Sequence[str] = "", stable: np.ndarray | None = None,
-                  upper: float | None = DEFAULT_UPPER, max_error: float = MAX_ERROR) -> KeyShapes:
+                  upper: float | None = DEFAULT_UPPER, max_error: float = MAX_ERROR,
+                  mirror: bool = DEFAULT_MIRROR, min_reach: float = MIN_REACH) -> KeyShapes:
     """Key shapes of one take, or one key set across several takes of the same actor.
 
     Pick the neutral frame (of the first take), align every frame of every take onto it,
@@ -62,6 +65,9 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
     take : a name per take, recorded with every key
     stable : (n_stable,) int landmarks to align on (default: the scheme's stable points)
     upper : the weight bound the keys will be solved with (selection fits under it)
+    mirror : add each key's left-right mirror image where it reaches what the keys cannot
+        (:func:`keyshape.keyshapes.add_mirrors`; ``min_reach`` its threshold): a one-sided
+        expression of this take then covers the other side in the next
     """
     tracks = [track] if isinstance(track, Track) else list(track)
     takes = [take] if isinstance(take, str) else list(take)
@@ -80,6 +86,8 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
     together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps)
     keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
                           neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)
+    if mirror:
+        keys = add_mirrors(keys, min_reach=min_reach, max_error=max_error, upper=upper)
     return _split_takes(keys, [t.n_frames for t in tracks], takes)
 
 
@@ -103,7 +111,92 @@ def _split_takes(keys: KeyShapes, lengths: list[int], takes: list[str]) -> KeySh
     which = np.searchsorted(starts, keys.frames, side="right") - 1
     return KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames - starts[which],
                      keys.key_regions, keys.regions, tuple(takes[i] for i in which),
-                     keys.neutral_frame, takes[0], keys.method, keys.stable)
+                     keys.neutral_frame, takes[0], keys.method, keys.stable, keys.mirror_of)
+
+
+def extend_keys(keys: KeyShapes, track: Track | Sequence[Track], *, take: str | Sequence[str] = "",
+                max_error: float = MAX_ERROR, max_keys: int = 24, upper: float | None = DEFAULT_UPPER,
+                mirror: bool = DEFAULT_MIRROR, min_reach: float = MIN_REACH) -> KeyShapes:
+    """``keys`` plus the fewest frames of new take(s) that bring them within ``max_error``.
+
+    Every old key keeps its name, shape and source; the new takes are aligned onto the key set's
+    neutral and, per region, frames added until the takes' RMS error is below ``max_error`` %
+    of the inter-ocular distance (:func:`keyshape.keyshapes.extend_keyshapes`); with ``mirror``
+    the new keys' mirrors are added where they add reach. The artist sculpts only the new keys.
+    """
+    tracks = [track] if isinstance(track, Track) else list(track)
+    takes = [take] if isinstance(take, str) else list(take)
+    takes = takes if len(takes) == len(tracks) else [f"take{i}" for i in range(len(tracks))]
+    for name, t in zip(takes, tracks):
+        if (t.n_landmarks, t.n_dims) != (keys.n_landmarks, keys.n_dims):
+            raise InputError(f"{name}: has {t.n_landmarks} landmarks in {t.n_dims}D but the key set was made "
+                             f"from {keys.n_landmarks} in {keys.n_dims}D")
+    stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
+    together = Track(_aligned_together(tracks, keys.neutral, stable), tracks[0].fps)
+    extended, _ = extend_keyshapes(keys, together, max_error=max_error, max_keys=max_keys, upper=upper)
+    if mirror:
+        extended = add_mirrors(extended, min_reach=min_reach, max_error=max_error, upper=upper)
+    # new keys' frames index the takes end to end: back to (take, frame)
+    lengths = [t.n_frames for t in tracks]
+    starts = np.cumsum([0, *lengths[:-1]])
+    old = set(keys.names)
+    frames, sources = extended.frames.copy(), list(extended.takes)
+    for k, name in enumerate(extended.names):
+        source = extended.mirror_of[k]
+        if name in old or (source and source in old):
+            continue
+        which = int(np.searchsorted(starts, extended.frames[k], side="right") - 1)
+        frames[k], sources[k] = extended.frames[k] - starts[which], takes[which]
+    return KeyShapes(extended.neutral, extended.deltas, extended.names, frames, extended.key_regions,
+                     extended.regions, tuple(sources), extended.neutral_frame, extended.neutral_take,
+                     extended.method, extended.stable, extended.mirror_of)
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """How well a key set reaches a take.
+
+    errors : dict region -> (n_frames,) float, each frame's RMS error of its best blend, % of the
+        inter-ocular distance (NaN without a face); max_error : the target;
+    added : dict region -> list of float, the take's RMS error with 0, 1, 2, … of its own frames
+        added as keys (the error-vs-added-keys curve; ``added[r][0]`` is the key set as it is)
+    """
+
+    errors: dict[str, np.ndarray]
+    max_error: float
+    added: dict[str, list[float]]
+    fps: float
+
+    def out_of_reach(self, region: str) -> np.ndarray:
+        """(n,) int: the frames whose error in ``region`` exceeds the target."""
+        return np.flatnonzero(np.nan_to_num(self.errors[region]) > self.max_error)
+
+    def summary(self) -> dict:
+        """Per region: RMS error over the take, frames out of reach (count, share) and the keys
+        ``--extend`` would add."""
+        out = {}
+        for region, e in self.errors.items():
+            ok = np.isfinite(e)
+            far = self.out_of_reach(region)
+            out[region] = {"rms_error": float(np.sqrt(np.mean(e[ok] ** 2))) if ok.any() else None,
+                           "frames_out_of_reach": int(far.size),
+                           "share_out_of_reach": float(far.size / max(int(ok.sum()), 1)),
+                           "keys_to_add": len(self.added[region]) - 1,
+                           "error_vs_added_keys": [round(float(v), 4) for v in self.added[region]]}
+        return out
+
+
+def coverage(keys: KeyShapes, track: Track, *, max_error: float = MAX_ERROR, upper: float | None = DEFAULT_UPPER,
+             max_added: int = 24) -> Coverage:
+    """How well ``keys`` reach ``track``: per-frame errors and the error-vs-added-keys curve."""
+    if (track.n_landmarks, track.n_dims) != (keys.n_landmarks, keys.n_dims):
+        raise InputError(f"the take has {track.n_landmarks} landmarks in {track.n_dims}D but the key set was made "
+                         f"from {keys.n_landmarks} in {keys.n_dims}D")
+    stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
+    aligned = Track(_aligned_together([track], keys.neutral, stable), track.fps)
+    errors = region_errors(keys, aligned, upper=upper)
+    _, curves = extend_keyshapes(keys, aligned, max_error=max_error, max_keys=max_added, upper=upper)
+    return Coverage(errors, float(max_error), curves, track.fps)
 
 
 @dataclass(frozen=True)

@@ -2,11 +2,14 @@
 
 A person can read it: names, source take and frame come first; the aligned landmark
 positions (neutral, and each key within its region) come last, so ``solve`` can use the
-key set on any take of the same actor::
+key set on any take of the same actor. A mirrored key (its source key's shape reflected through
+the face's symmetry plane) names its source in ``mirror_of`` and carries the source's frame::
 
     {"format": "keyshape-keys", "version": 1, "method": "spa",
      "n_landmarks": 478, "n_dims": 3, "neutral": {"take": "a.npz", "frame": 12},
-     "regions": {"upper": {"indices": [...], "keys": [{"name": "upper_00", "take": "a.npz", "frame": 87}]}},
+     "regions": {"upper": {"indices": [...], "keys": [{"name": "upper_00", "take": "a.npz", "frame": 87},
+                                                      {"name": "upper_00_mirror", "take": "a.npz", "frame": 87,
+                                                       "mirror_of": "upper_00"}]}},
      "stable": [...], "shapes": {"neutral": [[x, y, z], ...], "upper_00": [[x, y, z], ...]}}
 """
 
@@ -31,14 +34,20 @@ def _rounded(points: np.ndarray) -> list:
     return np.round(points, 4).tolist()
 
 
+def _key_entry(keys: KeyShapes, k: int) -> dict:
+    entry = {"name": keys.names[k], "take": keys.takes[k], "frame": int(keys.frames[k])}
+    if keys.mirror_of[k]:
+        entry["mirror_of"] = keys.mirror_of[k]  # its frame is the source key's frame
+    return entry
+
+
 def keys_to_dict(keys: KeyShapes) -> dict:
     """The JSON-ready form of ``keys``."""
     regions = {}
     for region, indices in keys.regions.items():
         regions[region] = {
             "indices": indices.tolist(),
-            "keys": [{"name": keys.names[k], "take": keys.takes[k], "frame": int(keys.frames[k])}
-                     for k in keys.keys_of(region)],
+            "keys": [_key_entry(keys, k) for k in keys.keys_of(region)],
         }
     shapes = {"neutral": _rounded(keys.neutral)}
     for k, name in enumerate(keys.names):
@@ -57,7 +66,7 @@ def keys_to_dict(keys: KeyShapes) -> dict:
 def keys_from_dict(data: dict) -> KeyShapes:
     """Inverse of :func:`keys_to_dict`."""
     neutral = np.asarray(data["shapes"]["neutral"], dtype=float)
-    names, frames, takes, key_regions, deltas = [], [], [], [], []
+    names, frames, takes, key_regions, deltas, mirror_of = [], [], [], [], [], []
     regions = {}
     for region, spec in data["regions"].items():
         idx = np.asarray(spec["indices"], dtype=int)
@@ -70,10 +79,11 @@ def keys_from_dict(data: dict) -> KeyShapes:
             takes.append(str(key.get("take", "")))
             key_regions.append(region)
             deltas.append(delta)
+            mirror_of.append(str(key.get("mirror_of") or ""))
     return KeyShapes(neutral, np.array(deltas).reshape(-1, *neutral.shape), tuple(names),
                      np.array(frames, dtype=int), tuple(key_regions), regions, tuple(takes),
                      int(data["neutral"]["frame"]), str(data["neutral"].get("take", "")),
-                     str(data.get("method", "")), data.get("stable"))
+                     str(data.get("method", "")), data.get("stable"), tuple(mirror_of))
 
 
 def save_keys(keys: KeyShapes, path: str | Path) -> Path:
