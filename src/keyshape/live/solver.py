@@ -33,7 +33,7 @@ from .frame import IDENTITY
 __all__ = ["LiveSolver", "Solve", "DEFAULT_SMOOTHING"]
 
 # One Euro settings on the weights (Hz, s): chosen in benchmarks/bench_live.py
-DEFAULT_SMOOTHING = {"min_cutoff": 3.0, "beta": 1.0}
+DEFAULT_SMOOTHING = {"min_cutoff": 3.0, "beta": 0.3}
 
 
 class Solve:

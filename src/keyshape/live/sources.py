@@ -114,6 +114,7 @@ class FrameSource:
 
     def __init__(self, spec: str, *, size: tuple[int, int] | None = None, fps: float | None = None,
                  input_format: str | None = None):
+        """``size`` and ``fps`` are asked of a camera; ``fps`` plays a file at that rate instead of its own."""
         self.spec = str(spec)
         self.mailbox = Mailbox()
         self._stop = threading.Event()
@@ -134,6 +135,7 @@ class FrameSource:
         else:
             raise InputError(f"{self.spec}: not a camera (0, /dev/video0), a video file or a stream URL")
         self.name = path.name if self.kind == "file" else self.spec
+        self._rate = fps if self.kind == "file" else None  # a file played at another rate
         self.fps, self.size = self._probe(fps)
 
     def _open(self):
@@ -179,7 +181,7 @@ class FrameSource:
     def _play_file(self) -> None:
         """Deliver the file's frames at their presentation times, from the moment it starts."""
         origin = None
-        for index, (ms, rgb) in enumerate(iter_frames(self.device, fps=None)):
+        for index, (ms, rgb) in enumerate(iter_frames(self.device, fps=self._rate)):
             if self._stop.is_set():
                 break
             now = time.perf_counter()
