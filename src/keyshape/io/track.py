@@ -94,12 +94,7 @@ def load_track(path: str | Path, *, fps: float | None = None) -> Track:
     path = existing_file(path)
     if path.suffix.lower() == ".csv":
         return _load_csv_track(path, fps)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error, KeyError, NotImplementedError,
-            RuntimeError) as exc:
-        raise InputError(f"{path}: not a readable .npz track file ({exc.__class__.__name__})") from None
+    arrays = _read_npz(path)
     check_track_arrays(path, arrays)
     size = arrays.get("image_size")
     names = arrays.get("blendshape_names")
@@ -110,6 +105,22 @@ def load_track(path: str | Path, *, fps: float | None = None) -> Track:
                      arrays.get("head_matrix"), arrays.get("frame_index"), arrays.get("time"))
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an .npz file; the file is opened here, so it is closed however it fails."""
+    try:
+        with open(path, "rb") as fh:
+            loaded = np.load(fh, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):
+                raise InputError(f"{path}: not a .npz track file (it holds a single array)")
+            with loaded as data:
+                return {k: data[k] for k in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error, KeyError, NotImplementedError,
+            RuntimeError, TypeError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"{path}: not a readable .npz track file ({exc.__class__.__name__})") from None
 
 
 def _csv_layout(path: Path, header: list[str]) -> tuple[int, int]:
