@@ -21,8 +21,8 @@ if ((${#missing[@]})); then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
 fi
 
-echo "setup: pip install -e .[test,bench,usd,ray]"
-python -m pip install -q --disable-pip-version-check -e ".[test,bench,usd,ray]"
+echo "setup: pip install -e .[test,bench,usd,ray,blender]"
+python -m pip install -q --disable-pip-version-check -e ".[test,bench,usd,ray,blender]"
 command -v pyenv >/dev/null && pyenv rehash || true
 
 echo "setup: npm ci (Khronos glTF validator)"

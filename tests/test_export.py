@@ -79,10 +79,11 @@ def test_format_of(name, fmt, expected):
 
 
 @pytest.mark.parametrize("name, fmt, message", [
-    ("a.fbx", None, "cannot tell the format of 'a.fbx'"),
+    ("a.abc", None, "cannot tell the format of 'a.abc'"),
     ("a.glb", "livelink", r"format livelink is written to a file ending in \.csv"),
     ("a.csv", "usd", r"format usd is written to a file ending in \.usd or \.usda"),
-    ("a.csv", "fbx", "unknown format 'fbx'"),
+    ("a.csv", "fbx", r"format fbx is written to a file ending in \.fbx"),
+    ("a.csv", "abc", "unknown format 'abc'"),
 ])
 def test_format_errors(name, fmt, message):
     with pytest.raises(InputError, match=message):

@@ -28,6 +28,7 @@ OUTPUT_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.
 RUN_OUTPUTS = frozenset(OUTPUT_FILES) | {"preview.mp4", "keyshapes.png", "weights.png", "report.html",
                                          "correspondence.json", "map.json", "error_vs_k.png",
                                          "error_vs_k.json", "error_vs_k.csv"}
+ANIMATION_SUFFIXES = {"fbx": ".fbx", "blend": ".blend", "usd": ".usda"}  # RunOptions.formats
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,7 @@ class RunOptions:
     normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
     preview: bool = True
     extras: bool = True
+    formats: tuple[str, ...] = ()  # the animation also as animation.<suffix>: "fbx", "blend", "usd"
 
 
 @dataclass(frozen=True)
@@ -161,7 +163,20 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes)
+    for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
+        export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
+               source=source, eyes=eyes)
     save_take_info(stage / "take.json", video=video, track=track, keys=keys)
+
+
+def _check_formats(formats) -> None:
+    unknown = [f for f in formats if f not in ANIMATION_SUFFIXES]
+    if unknown:
+        raise InputError(f"formats must be among {sorted(ANIMATION_SUFFIXES)}; got {unknown}")
+    if {"fbx", "blend"} & set(formats):
+        from ..io.blender import check_blender
+
+        check_blender()  # before the tracking, not after it
 
 
 def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOptions(), *,
@@ -170,7 +185,8 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
 
     ``track``: the take's track when it was made already (``video`` is then only recorded).
 
-    Writes ``track.npz``, ``keys.json``, ``weights.csv``, ``animation.glb``, ``take.json`` and,
+    Writes ``track.npz``, ``keys.json``, ``weights.csv``, ``animation.glb`` (and
+    ``animation.fbx`` / ``.blend`` / ``.usda`` for ``options.formats``), ``take.json`` and,
     with ``options.extras``, ``preview.mp4`` (``options.preview``), the pictures and ``report.html``.
     Everything is staged and moved into ``outdir`` at the end; on error nothing is moved.
     """
@@ -181,6 +197,7 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     video, outdir = Path(video), Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
+    _check_formats(options.formats)
     loaded_rig, keys = _read_inputs(options, video, track)
     if track is None:
         track = track_video(video, progress=progress, **options.capture)

@@ -60,6 +60,7 @@ VERBS = {
                          "sheet, a README")),
     "view": ("view", "watch the video and the animated character in sync, in a browser"),
     "live": ("live", "a camera drives a character in real time: VMC, Unreal Live Link, the browser, a recording"),
+    "blender-addon": ("blender_addon", "write keyshape's Blender add-on as an installable zip"),
 }
 
 

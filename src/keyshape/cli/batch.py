@@ -65,6 +65,9 @@ def add_arguments(p) -> None:
                    help="CPUs of the local Ray instance (default: every core)")
     p.add_argument("--no-preview", action="store_true",
                    help="skip each take's preview video (the slowest extra)")
+    from .run import add_format_option
+
+    add_format_option(p)
 
 
 def run(args) -> None:
@@ -73,7 +76,8 @@ def run(args) -> None:
 
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
-                         neutral=args.neutral, preview=not args.no_preview, **solve_kwargs(args))
+                         neutral=args.neutral, preview=not args.no_preview,
+                         formats=tuple(args.formats), **solve_kwargs(args))
     runner = make_runner(sequential=args.sequential, workers=args.workers, address=args.address)
     if not args.quiet and runner.name == "sequential" and not args.sequential:
         print("keyshape: Ray is not installed; running the takes one after the other "

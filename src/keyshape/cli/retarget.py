@@ -12,7 +12,9 @@ DESCRIPTION = (
     "mapping (--map). Writes each output in the format its suffix (or --format) names: .glb "
     "(a glTF rig's file kept whole, with a morph-weight animation added), .usd/.usda/.usdc/"
     ".usdz (UsdSkel; a USD rig's stage kept whole), .csv (target weights) or --format livelink "
-    "(Live Link Face CSV for ARKit-named targets). With --track, the head rotation is written too."
+    "(Live Link Face CSV for ARKit-named targets), .fbx or .blend (through Blender's own exporters: "
+    'pip install "keyshape[blender]"; a glTF rig\'s file kept whole). With --track, the head rotation '
+    "is written too."
 )
 EPILOG = """\
 mapping file (JSON, gains >= 0; a key may drive several targets):
@@ -21,6 +23,7 @@ examples:
   keyshape retarget weights.csv --rig hero.glb --track track.npz -o hero_anim.glb
   keyshape retarget weights.csv --rig ict/ --rig-unit cm --map arkit.json -o face.usda -o face.glb
   keyshape retarget weights.csv --map arkit.json --format livelink -o take_livelink.csv
+  keyshape retarget weights.csv --rig robot.glb --map map.json --track track.npz -o anim.fbx -o anim.blend
 """
 
 
@@ -39,7 +42,7 @@ def add_arguments(p) -> None:
     p.add_argument("--allow-extra", action="store_true",
                    help="without --map: let rig targets that no key drives stay at 0 (default: an error "
                         "listing them)")
-    p.add_argument("--format", choices=("glb", "usd", "csv", "livelink"), default=None,
+    p.add_argument("--format", choices=("glb", "usd", "csv", "livelink", "fbx", "blend"), default=None,
                    help="output format for every -o (default: from each suffix; livelink must be asked for)")
     add_rig_options(p)
     p.add_argument("--head", default=None, metavar="NODE",
@@ -55,6 +58,10 @@ def run(args) -> None:
     from ..targets import retarget
 
     formats = [format_of(out, args.format) for out in args.output]
+    if {Format.FBX, Format.BLEND} & set(formats):
+        from ..io.blender import check_blender
+
+        check_blender()  # before any output is written
     weights = load_weights_csv(args.weights)
     rig = _rig(args, formats, Format)
     anim = retarget(weights, _mapping(args, weights, rig))

@@ -44,6 +44,16 @@ def add_arguments(p) -> None:
     add_solve_options(p)
     p.add_argument("--no-preview", action="store_true",
                    help="skip the side-by-side preview video (pictures and report are still written)")
+    add_format_option(p)
+
+
+def add_format_option(p) -> None:
+    """``--format``: the animation also as FBX, .blend (Blender, the `blender` extra) or USD."""
+    p.add_argument("--format", dest="formats", action="append", choices=("fbx", "blend", "usd"), default=[],
+                   metavar="{fbx,blend,usd}",
+                   help="also write the animation as animation.fbx, animation.blend (through Blender: "
+                        'pip install "keyshape[blender]") or animation.usda; give it again for several. '
+                        "animation.glb is always written (the report and viewer play it)")
 
 
 def check(parser, args) -> None:
@@ -59,7 +69,7 @@ def run(args) -> None:
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          neutral=args.neutral, auto_targets=args.auto_targets,
                          correspondence=args.correspondence, front=args.front, normalize=args.normalize,
-                         capture=capture_kwargs(args), preview=not args.no_preview,
+                         capture=capture_kwargs(args), preview=not args.no_preview, formats=tuple(args.formats),
                          **solve_kwargs(args))
     summary = run_take(args.video, args.output, options, progress=progress(args))
     keys = summary.keys

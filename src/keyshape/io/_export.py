@@ -12,6 +12,9 @@ format        suffixes                         writer
 ``csv``       ``.csv``                         :func:`keyshape.io.weights_csv.save_weights_csv`
 ``livelink``  (``--format livelink``; a        :func:`keyshape.io.livelink.write_livelink_csv`
               ``.csv`` name)
+``fbx``       ``.fbx``                         :func:`keyshape.io.blender.write_blender`: Blender's
+``blend``     ``.blend``                       FBX exporter, or a Blender file (``bpy``, the
+                                               ``blender`` extra, run in its own process)
 ============  ===============================  ==================================================
 """
 
@@ -33,11 +36,14 @@ class Format(StrEnum):
     USD = "usd"
     CSV = "csv"
     LIVELINK = "livelink"
+    FBX = "fbx"
+    BLEND = "blend"
 
 
 _SUFFIXES = {".glb": Format.GLB, ".usd": Format.USD, ".usda": Format.USD, ".usdc": Format.USD,
-             ".usdz": Format.USD, ".csv": Format.CSV}
-_NEEDS_RIG = (Format.GLB, Format.USD)
+             ".usdz": Format.USD, ".csv": Format.CSV, ".fbx": Format.FBX, ".blend": Format.BLEND}
+_NEEDS_RIG = (Format.GLB, Format.USD, Format.FBX, Format.BLEND)
+_BLENDER = (Format.FBX, Format.BLEND)
 
 
 def format_of(path, format: str | Format | None = None) -> Format:
@@ -86,14 +92,15 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
         ``rig``; any subset of the original file's targets for ``glb`` onto ``source``.
     path : str or Path
     rig : Rig, optional, keyword-only
-        Needed for ``usd``, and for ``glb`` without ``source``.
+        Needed for ``usd``, and for ``glb``, ``fbx`` and ``blend`` without a glTF ``source``.
     poses : Poses, optional, keyword-only
         Head poses (image convention) for ``glb``, ``usd`` and ``livelink``; ignored by ``csv``.
     format : str or Format, optional, keyword-only
         Default: from the suffix (``livelink`` must be asked for).
     source : str or Path, optional, keyword-only
         The file the rig came from: ``glb`` output onto a ``.glb``/``.gltf`` source and ``usd``
-        output onto a USD source keep that file whole and add the animation
+        output onto a USD source keep that file whole and add the animation; so do ``fbx`` and
+        ``blend`` onto a glTF source (through Blender)
         (:func:`keyshape.io.gltf.animate_gltf`, :func:`keyshape.io.usd.animate_usd`).
     head : str, optional, keyword-only
         The node of ``source`` to turn with the head (default: found by name; see
@@ -114,7 +121,7 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     chosen = format_of(path, format)
     kind = _source_kind(source)
     glb_source, usd_source = kind is Format.GLB, kind is Format.USD
-    if chosen in _NEEDS_RIG and rig is None and kind is not chosen:
+    if chosen in _NEEDS_RIG and rig is None and kind is not chosen and not (chosen in _BLENDER and glb_source):
         raise InputError(f"writing {chosen.value} needs the rig")
     if chosen is Format.GLB:
         from .gltf import animate_gltf, write_glb
@@ -128,6 +135,11 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
         if usd_source:
             return animate_usd(source, animation, path, poses=poses)
         return write_usd(path, rig, animation, poses=poses)
+    if chosen in _BLENDER:
+        from .blender import write_blender
+
+        return write_blender(path, animation, rig=rig, source=source if glb_source else None, poses=poses,
+                             head=head, eyes=eyes)
     if chosen is Format.LIVELINK:
         from .livelink import write_livelink_csv
 
