@@ -365,3 +365,46 @@ def test_run_writes_animation_fbx_beside_the_glb(demo_out, demo_clip, tmp_path):
     assert sorted(seen["keyed"][mesh]) == sorted(f'key_blocks["{n}"].value' for n in weights.names)
     glb = read_glb_animation(tmp_path / "out" / "animation.glb")
     np.testing.assert_allclose([[f[n] for n in glb.names] for f in frames], glb.weights, atol=1e-4)
+
+
+# the add-on's Video panel: `keyshape run` on the clip for the selected character, the take brought in
+RUN_VIDEO = INSTALL + """
+import os
+character, video, out, options, command = sys.argv[-6:-1]
+bpy.context.preferences.addons["%s"].preferences.command = command
+bpy.ops.import_scene.gltf(filepath=character)
+(face,) = [o for o in bpy.data.objects if o.type == "MESH" and o.data.shape_keys]
+face.data.shape_keys.animation_data_clear()
+face.select_set(True)
+bpy.context.view_layer.objects.active = face
+settings = bpy.context.scene.keyshape
+settings.video, settings.output, settings.options = video, out, options
+assert bpy.ops.keyshape.run_video() == {"FINISHED"}
+scene = bpy.context.scene
+names = [k.name for k in face.data.shape_keys.key_blocks[1:]]
+values = []
+for frame in range(scene.frame_start, scene.frame_end + 1):
+    scene.frame_set(frame)
+    values.append([face.data.shape_keys.key_blocks[n].value for n in names])
+print("RESULT " + json.dumps({"names": names, "values": values, "folder": settings.folder}), flush=True)
+os._exit(0)  # bpy 4.2 as a module segfaults on teardown after a glTF export (the operator exports the character)
+""" % ADDON_NAME
+
+
+@needs_blender
+@pytest.mark.slow
+def test_addon_runs_keyshape_on_a_video_for_the_selected_character(demo_out, demo_clip, tmp_path):
+    """The Video panel: the selection exported, `keyshape run` on 40 frames with the demo's key set, the take keyed."""
+    import shutil
+
+    assert main(["blender-addon", "-o", str(tmp_path), "-q"]) == 0
+    (addon,) = tmp_path.glob("*.zip")
+    env = {f"BLENDER_USER_{k}": str(tmp_path / k.lower()) for k in ("SCRIPTS", "CONFIG", "RESOURCES", "EXTENSIONS")}
+    out = tmp_path / "take"
+    options = f"--end 40 --keys {demo_out / 'keys.json'}"
+    seen = _blender(tmp_path, RUN_VIDEO, demo_out / "animation.glb", demo_clip, out, options,
+                    shutil.which("keyshape"), addon, env=env)
+    weights = load_weights_csv(out / "weights.csv")
+    assert weights.n_frames == 40 and seen["folder"] == str(out)
+    assert seen["names"] == list(weights.names)
+    np.testing.assert_allclose(seen["values"], np.nan_to_num(weights.values), atol=1e-4)

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import shlex
 import shutil
 import subprocess
 import tempfile
@@ -48,6 +49,8 @@ class KeyshapeSettings(bpy.types.PropertyGroup):
                            description="Folder for the run's outputs (empty: beside the video)")
     auto_targets: BoolProperty(name="Auto targets", default=False,
                                description="keyshape run --auto-targets: propose a key -> shape key mapping")
+    options: StringProperty(name="Options", description="More `keyshape run` options, e.g. --end 300 --count 6 "
+                                                         "or --keys KEYS.json (a key set shared across takes)")
     kit: StringProperty(name="Sculpt kit", subtype="FILE_PATH", description="sculpt.glb of `keyshape sculpt`")
 
 
@@ -178,6 +181,7 @@ class KEYSHAPE_OT_run_video(bpy.types.Operator):
                 command += ["--map", bpy.path.abspath(settings.mapping)]
             elif settings.auto_targets:
                 command += ["--auto-targets"]
+            command += shlex.split(settings.options)
             done = subprocess.run(command, capture_output=True, text=True, check=False)
             if done.returncode != 0:
                 raise RuntimeError((done.stderr.strip().splitlines() or ["keyshape run failed"])[-1])
@@ -269,6 +273,7 @@ class KEYSHAPE_PT_panel(bpy.types.Panel):
         box.prop(settings, "video")
         box.prop(settings, "output")
         box.prop(settings, "auto_targets")
+        box.prop(settings, "options")
         box.operator(KEYSHAPE_OT_run_video.bl_idname)
         box = self.layout.box()
         box.label(text="Sculpt kit", icon="SCULPTMODE_HLT")
