@@ -353,7 +353,8 @@ def _shared_key_set(videos: list[Path], outdir: Path, options: RunOptions, runne
             return replace(options, keys=keys_path), tracks, failed
         keys = discover_keys([load_track(tracks[v]) for v in usable], regions=options.regions,
                              n_keys=options.n_keys, method=options.method, neutral=options.neutral,
-                             take=[v.name for v in usable])
+                             take=[v.name for v in usable], upper=options.upper, max_error=options.max_error,
+                             mirror=options.mirror)
         save_keys(keys, keys_path)
     return replace(options, keys=keys_path), tracks, failed
 

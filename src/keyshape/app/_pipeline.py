@@ -159,7 +159,8 @@ class Coverage:
     errors : dict region -> (n_frames,) float, each frame's RMS error of its best blend, % of the
         inter-ocular distance (NaN without a face); max_error : the target;
     added : dict region -> list of float, the take's RMS error with 0, 1, 2, … of its own frames
-        added as keys (the error-vs-added-keys curve; ``added[r][0]`` is the key set as it is)
+        added as keys (the error-vs-added-keys curve; ``added[r][0]`` is the key set as it is),
+        at least a few keys past the target
     """
 
     errors: dict[str, np.ndarray]
@@ -171,6 +172,12 @@ class Coverage:
         """(n,) int: the frames whose error in ``region`` exceeds the target."""
         return np.flatnonzero(np.nan_to_num(self.errors[region]) > self.max_error)
 
+    def keys_to_add(self, region: str) -> int | None:
+        """The fewest keys from the take that bring ``region`` within the target (None: more
+        than the curve holds)."""
+        below = [i for i, e in enumerate(self.added[region]) if e < self.max_error]
+        return below[0] if below else None
+
     def summary(self) -> dict:
         """Per region: RMS error over the take, frames out of reach (count, share) and the keys
         ``--extend`` would add."""
@@ -181,21 +188,27 @@ class Coverage:
             out[region] = {"rms_error": float(np.sqrt(np.mean(e[ok] ** 2))) if ok.any() else None,
                            "frames_out_of_reach": int(far.size),
                            "share_out_of_reach": float(far.size / max(int(ok.sum()), 1)),
-                           "keys_to_add": len(self.added[region]) - 1,
+                           "keys_to_add": self.keys_to_add(region),
                            "error_vs_added_keys": [round(float(v), 4) for v in self.added[region]]}
         return out
 
 
 def coverage(keys: KeyShapes, track: Track, *, max_error: float = MAX_ERROR, upper: float | None = DEFAULT_UPPER,
-             max_added: int = 24) -> Coverage:
-    """How well ``keys`` reach ``track``: per-frame errors and the error-vs-added-keys curve."""
+             max_added: int = 24, past_target: int = 3) -> Coverage:
+    """How well ``keys`` reach ``track``: per-frame errors and the error-vs-added-keys curve.
+
+    The curve runs until ``past_target`` keys beyond those that reach ``max_error`` (or
+    ``max_added`` keys in all).
+    """
     if (track.n_landmarks, track.n_dims) != (keys.n_landmarks, keys.n_dims):
         raise InputError(f"the take has {track.n_landmarks} landmarks in {track.n_dims}D but the key set was made "
                          f"from {keys.n_landmarks} in {keys.n_dims}D")
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
     aligned = Track(_aligned_together([track], keys.neutral, stable), track.fps)
     errors = region_errors(keys, aligned, upper=upper)
-    _, curves = extend_keyshapes(keys, aligned, max_error=max_error, max_keys=max_added, upper=upper)
+    _, needed = extend_keyshapes(keys, aligned, max_error=max_error, max_keys=max_added, upper=upper)
+    longest = min(max(len(c) for c in needed.values()) - 1 + past_target, max_added)
+    _, curves = extend_keyshapes(keys, aligned, max_error=1e-9, max_keys=longest, upper=upper)
     return Coverage(errors, float(max_error), curves, track.fps)
 
 

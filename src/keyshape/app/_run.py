@@ -17,7 +17,15 @@ from pathlib import Path
 import numpy as np
 
 from ..containers import KeyShapes, Rig, Track
-from ..defaults import DEFAULT_METHOD, DEFAULT_N_KEYS, DEFAULT_REGIONS, DEFAULT_SMOOTHNESS, DEFAULT_UPPER, MAX_ERROR
+from ..defaults import (
+    DEFAULT_METHOD,
+    DEFAULT_MIRROR,
+    DEFAULT_N_KEYS,
+    DEFAULT_REGIONS,
+    DEFAULT_SMOOTHNESS,
+    DEFAULT_UPPER,
+    MAX_ERROR,
+)
 from ..exceptions import InputError
 from ..io.atomic import staged_folder
 
@@ -42,6 +50,7 @@ class RunOptions:
     n_keys: int | str = DEFAULT_N_KEYS  # or "auto"
     max_error: float = MAX_ERROR  # % inter-ocular distance, for n_keys="auto"
     method: str = DEFAULT_METHOD
+    mirror: bool = DEFAULT_MIRROR  # add mirrored keys where they add reach
     neutral: int | None = None
     capture: dict = field(default_factory=dict)  # start, end, fps, face, one_euro
     smoothness: float = DEFAULT_SMOOTHNESS
@@ -204,7 +213,7 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     if keys is None:
         keys = discover_keys(track, regions=options.regions, n_keys=options.n_keys,
                              method=options.method, neutral=options.neutral, take=video.name,
-                             upper=options.upper, max_error=options.max_error)
+                             upper=options.upper, max_error=options.max_error, mirror=options.mirror)
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
     scores = key_scores(keys, track) if options.keys is None else None  # reused keys: frames of other takes

@@ -45,6 +45,8 @@ VERBS = {
     "track": ("track", "track the face in a video (MediaPipe, 478 landmarks)"),
     "keys": ("keys", "discover key shapes (real frames) per region"),
     "solve": ("solve", "non-negative weights of every frame on the key shapes"),
+    "coverage": ("coverage", "how well a key set reaches a new take: frames out of reach, keys to add"),
+    "rom": ("rom", "the range-of-motion script: the expressions to film once for a key set that carries over"),
     "retarget": ("retarget", "drive a rig with the weights and write .glb, USD, CSV or Live Link Face CSV"),
     "run": ("run", "all stages: video -> track, keys, weights, animated .glb"),
     "demo": ("demo", "run the whole path on the embedded real clip"),

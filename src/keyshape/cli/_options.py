@@ -61,6 +61,10 @@ def add_key_options(p: argparse.ArgumentParser) -> None:
                    help="upper-lower (brows+eyes / mouth+jaw, default), whole, eyes "
                         "(brows / left eye / right eye / mouth), or a REGIONS.json mapping region "
                         "names to landmark indices")
+    p.add_argument("--no-mirror", dest="mirror", action="store_false",
+                   help="no mirrored keys (default: each key's left-right mirror image is added where it "
+                        "reaches what the keys cannot, so a one-sided move seen on one side drives the "
+                        "other side too; mirrored keys need no sculpting: their targets are mirrored)")
     p.add_argument("--neutral", type=whole(0), default=None, metavar="FRAME",
                    help="the neutral (resting) frame; default: chosen automatically as the frame "
                         "closest to the median aligned shape")
@@ -163,7 +167,11 @@ def describe_keys(keys) -> str:
     """``upper: frames 3, 17, ...; lower: ...`` (``take:frame`` when the keys come from several takes)."""
     several = len(set(keys.takes)) > 1
     where = [f"{t}:{f}" if several else str(f) for t, f in zip(keys.takes, keys.frames)]
-    parts = [f"{r}: frames {', '.join(where[k] for k in keys.keys_of(r))}" for r in keys.regions]
+    parts = [f"{r}: frames {', '.join(where[k] for k in keys.keys_of(r) if not keys.mirror_of[k])}"
+             for r in keys.regions]
+    mirrored = [keys.mirror_of[k] for k in range(keys.n_keys) if keys.mirror_of[k]]
+    if mirrored:
+        parts.append(f"mirrored: {', '.join(mirrored)}")
     return "; ".join(parts)
 
 

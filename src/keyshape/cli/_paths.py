@@ -36,6 +36,7 @@ FOLDER_OUTPUTS = {
     "batch": ("summary.csv", "keys.json"),
     "sculpt": ("sculpt.glb", "keys.png", "README.md"),
     "report-k": ("error_vs_k.csv", "error_vs_k.json", "error_vs_k.png"),
+    "coverage": ("coverage.png", "coverage.json"),
 }
 _EITHER = {"propose"}  # -o is a file (.json, .glb) or a folder (an OBJ rig)
 _OUTPUT_DESTS = ("output", "save_correspondence")

@@ -76,7 +76,7 @@ def run(args) -> None:
 
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
-                         neutral=args.neutral, preview=not args.no_preview,
+                         mirror=args.mirror, neutral=args.neutral, preview=not args.no_preview,
                          formats=tuple(args.formats), **solve_kwargs(args))
     runner = make_runner(sequential=args.sequential, workers=args.workers, address=args.address)
     if not args.quiet and runner.name == "sequential" and not args.sequential:

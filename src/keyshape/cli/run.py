@@ -67,7 +67,7 @@ def run(args) -> None:
 
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
-                         neutral=args.neutral, auto_targets=args.auto_targets,
+                         mirror=args.mirror, neutral=args.neutral, auto_targets=args.auto_targets,
                          correspondence=args.correspondence, front=args.front, normalize=args.normalize,
                          capture=capture_kwargs(args), preview=not args.no_preview, formats=tuple(args.formats),
                          **solve_kwargs(args))

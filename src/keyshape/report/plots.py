@@ -282,3 +282,57 @@ def _regroup(table: Mapping) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray
                                  f"got {ks.size} ks and {errors.size} errors")
             out.setdefault(str(region), {})[str(method)] = (ks, errors)
     return out
+
+
+# --------------------------------------------------------------------------- coverage of a new take
+
+
+def coverage(errors: Mapping[str, np.ndarray], max_error: float, added: Mapping[str, list[float]], times: np.ndarray,
+             path, *, unit: str = "% inter-ocular") -> Path:
+    """How well a key set reaches a take: per region the error over time, and the error against
+    keys added from the take (what ``keys --extend`` would add).
+
+    Parameters
+    ----------
+    errors : mapping region -> (n_frames,) float, each frame's RMS error of its best blend (NaN: no face)
+    max_error : float, the error target (frames above it are out of reach, shaded)
+    added : mapping region -> list of float, the take's RMS error with 0, 1, 2, … of its frames added
+    times : (n_frames,) float, seconds
+    path : str or Path, output PNG
+
+    Returns
+    -------
+    Path
+    """
+    regions = list(errors)
+    palette = region_palette(regions)
+    figure = _figure(13, 2.2 * len(regions) + 0.6)
+    grid = figure.add_gridspec(len(regions), 2, width_ratios=[4.0, 1.2])
+    for row, region in enumerate(regions):
+        colour = _rgb(palette[region])
+        ax = figure.add_subplot(grid[row, 0])
+        e = np.asarray(errors[region], dtype=float)
+        far = np.nan_to_num(e) > max_error
+        ax.plot(times, e, lw=0.9, color=colour, label=f"{region}: RMS error per frame")
+        ax.axhline(max_error, color="black", lw=0.8, ls="--", label=f"target {max_error:g}")
+        _shade(ax, times, far, colour, 0.22)
+        _shade(ax, times, ~np.isfinite(e), _GAP_COLOUR, 0.35)
+        ax.set_ylabel(f"{region}\n({unit})")
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.25)
+        share = 100 * far.sum() / max(int(np.isfinite(e).sum()), 1)
+        ax.set_title(f"{region}: {int(far.sum())} frames out of reach ({share:.1f} %)", fontsize=9, loc="left")
+        ax.legend(loc="upper right", fontsize=7, frameon=False)
+        if row == len(regions) - 1:
+            ax.set_xlabel("time (s)")
+        curve = figure.add_subplot(grid[row, 1])
+        values = list(added[region])
+        curve.plot(range(len(values)), values, marker="o", ms=3, color=colour)
+        curve.axhline(max_error, color="black", lw=0.8, ls="--")
+        curve.set_xlim(-0.4, max(len(values) - 1, 1) + 0.4)
+        curve.xaxis.get_major_locator().set_params(integer=True)
+        curve.set_ylim(bottom=0)
+        curve.set_xlabel("keys added from this take", fontsize=8)
+        curve.set_ylabel(f"take's RMS error ({unit})", fontsize=8)
+        curve.grid(alpha=0.25)
+    return _save(figure, path)
