@@ -158,7 +158,7 @@ def test_a_rig_without_a_gltf_file_in_fbx_keeps_its_size(tmp_path):
 
 
 def test_without_bpy_one_line_says_what_to_install(tmp_path, monkeypatch, capsys):
-    import keyshape.io.blender as blender
+    from keyshape.io import blender
 
     monkeypatch.delenv("KEYSHAPE_BPY_PYTHON", raising=False)
     monkeypatch.setattr(blender.importlib.util, "find_spec", lambda name: None)
@@ -371,7 +371,7 @@ def test_run_writes_animation_fbx_beside_the_glb(demo_out, demo_clip, tmp_path):
 RUN_VIDEO = INSTALL + """
 import os
 character, video, out, options, command = sys.argv[-6:-1]
-bpy.context.preferences.addons["%s"].preferences.command = command
+bpy.context.preferences.addons["ADDON"].preferences.command = command
 bpy.ops.import_scene.gltf(filepath=character)
 (face,) = [o for o in bpy.data.objects if o.type == "MESH" and o.data.shape_keys]
 face.data.shape_keys.animation_data_clear()
@@ -388,7 +388,7 @@ for frame in range(scene.frame_start, scene.frame_end + 1):
     values.append([face.data.shape_keys.key_blocks[n].value for n in names])
 print("RESULT " + json.dumps({"names": names, "values": values, "folder": settings.folder}), flush=True)
 os._exit(0)  # bpy 4.2 as a module segfaults on teardown after a glTF export (the operator exports the character)
-""" % ADDON_NAME
+""".replace("ADDON", ADDON_NAME)
 
 
 @needs_blender
@@ -408,3 +408,60 @@ def test_addon_runs_keyshape_on_a_video_for_the_selected_character(demo_out, dem
     assert weights.n_frames == 40 and seen["folder"] == str(out)
     assert seen["names"] == list(weights.names)
     np.testing.assert_allclose(seen["values"], np.nan_to_num(weights.values), atol=1e-4)
+
+
+# per frame (from frame 1): the world rotation of each named object
+READ_TURNS = """
+import sys, json, bpy, numpy as np
+path, n_frames, names = sys.argv[-3], int(sys.argv[-2]), sys.argv[-1].split(",")
+if path.endswith(".fbx"):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.import_scene.fbx(filepath=path)
+else:
+    bpy.ops.wm.open_mainfile(filepath=path)
+scene, turns = bpy.context.scene, {n: [] for n in names}
+for i in range(n_frames):
+    scene.frame_set(1 + i)
+    for n in names:
+        u, _, vt = np.linalg.svd(np.array(bpy.data.objects[n].matrix_world)[:3, :3])
+        turns[n].append((u @ vt).tolist())
+print("RESULT " + json.dumps(turns))
+"""
+
+
+@needs_blender
+@pytest.mark.parametrize("suffix", [".blend", ".fbx"])
+def test_head_and_eye_objects_turn(tmp_path, suffix):
+    """A glTF with a Head node and Eye.L / Eye.R below it: the eyes turn with the head and the gaze,
+    world rotation G D E Gᵀ relative to rest (D the head's turn, E the eye's, glTF axes)."""
+    import pygltflib
+    from scipy.spatial.transform import Rotation
+
+    from keyshape.io.gltf import write_glb
+    from keyshape.schemes import rotations_to_gltf
+
+    rig = Rig(np.eye(3), [[0, 1, 2]], np.full((1, 3, 3), 0.01), ("open",))
+    source = write_glb(tmp_path / "face.glb", rig, Weights(np.zeros((0, 1)), rig.names, 30))
+    document = pygltflib.GLTF2().load(str(source))
+    bone_axes = Rotation.from_euler("x", -90, degrees=True).as_quat().tolist()
+    document.nodes += [pygltflib.Node(name="Head", children=[0, 2, 3], rotation=[0.0, 0.0, 0.3826834, 0.9238795]),
+                       pygltflib.Node(name="Eye.L", translation=[0.03, 0.05, 0.05], rotation=bone_axes),
+                       pygltflib.Node(name="Eye.R", translation=[-0.03, 0.05, 0.05], rotation=bone_axes)]
+    document.scenes[0].nodes = [1]
+    document.save_binary(str(source))
+    n = 8
+    head = Rotation.from_euler("yx", np.column_stack([np.linspace(0, 30, n), np.linspace(0, -10, n)]),
+                               degrees=True).as_matrix()
+    look = np.stack([Rotation.from_euler("y", np.linspace(-15, 15, n)[:, None], degrees=True).as_matrix(),
+                     Rotation.from_euler("x", np.linspace(10, -10, n)[:, None], degrees=True).as_matrix()], axis=1)
+    poses = Poses(head, np.zeros((n, 3)), np.ones(n))
+    out = export(Weights(np.linspace(0, 1, n)[:, None], rig.names, fps=30.0), tmp_path / f"eyes{suffix}",
+                 source=source, poses=poses, eyes=look)
+    seen = {k: np.array(v) for k, v in _blender(tmp_path, READ_TURNS, out, n, "Head,Eye.L,Eye.R").items()}
+    G = GLTF_TO_BLENDER
+    D = head_rotations(poses)
+    for name, turn in (("Head", D), ("Eye.L", D @ rotations_to_gltf(look[:, 0])),
+                       ("Eye.R", D @ rotations_to_gltf(look[:, 1]))):
+        relative = np.einsum("fij,kj->fik", seen[name], seen[name][0])  # W_f W_0ᵀ = G T_f T_0ᵀ Gᵀ
+        expected = np.einsum("ij,fjk,lk,ml->fim", G, turn, turn[0], G)
+        np.testing.assert_allclose(relative, expected, atol=2e-3, err_msg=name)

@@ -54,12 +54,14 @@ def main(argv: list[str]) -> int:
     turns = [(job["head"], arrays.get("head"))]
     for side, eye in enumerate(job.get("eyes") or ()):
         turns.append((eye, arrays["eyes"][:, side]))
+    nodes = []
     for node_name, rotations in turns:
         if node_name and rotations is not None:
             node = anim.find_node(objects, node_name)
             if node is None:
                 raise SystemExit(f"keyshape: Blender imported no object or bone named {node_name!r}")
-            anim.turn(node, rotations, start=job["start"])
+            nodes.append((node, rotations))
+    anim.turn(nodes, start=job["start"])
     scene.frame_set(job["start"])
     _write(bpy, job["format"], job["output"])
     return 0

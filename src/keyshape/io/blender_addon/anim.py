@@ -113,31 +113,40 @@ def find_node(objects, name: str):
     return None
 
 
-def turn(node, rotations, *, start: int = 1, name: str = "keyshape") -> None:
-    """Key ``rotations (n_frames, 3, 3)`` (glTF world axes, about the node's pivot, its parents as they
-    stand) on ``node``, a :func:`find_node` result: the pose bone's or the object's quaternion rotation."""
+def turn(turns, *, start: int = 1, name: str = "keyshape") -> None:
+    """Key ``[(node, rotations (n_frames, 3, 3)), ...]`` (glTF world axes, each node about its pivot,
+    its parents at rest) on each node, a :func:`find_node` result: the pose bone's or the object's
+    quaternion rotation. All are computed before any is keyed, so a head keyed first does not move
+    the eyes' rest."""
+    bpy.context.view_layer.update()
+    quats = [_local_quaternions(node, rotations) for node, rotations in turns]
+    for (node, _), q in zip(turns, quats):
+        owner, bone = node
+        (owner.pose.bones[bone] if bone is not None else owner).rotation_mode = "QUATERNION"
+        path = f'pose.bones["{bpy.utils.escape_identifier(bone)}"].rotation_quaternion' if bone is not None \
+            else "rotation_quaternion"
+        action = owner.animation_data.action if owner.animation_data and owner.animation_data.action else \
+            _new_action(owner, f"{name}_{owner.name}")
+        for i in range(4):
+            _curve(action, path, i, q[:, i], start, group=bone or owner.name)
+
+
+def _local_quaternions(node, rotations) -> np.ndarray:
+    """(n_frames, 4) quaternions (w, x, y, z) of the node's own rotation that turn it by ``rotations``."""
     owner, bone = node
     world = np.einsum("ij,fjk,lk->fil", GLTF_TO_BLENDER, np.asarray(rotations, dtype=float), GLTF_TO_BLENDER)
-    bpy.context.view_layer.update()
     if bone is not None:
-        # armature space: pose = M · basis, M fixed by the parents as they stand now; the turn there is
+        # armature space: pose = M · basis, M fixed by the parents as they stand; the turn there is
         # Aᵀ D A (A: the armature's world rotation), so basis' = basis · poseᵀ · Aᵀ D A · pose
         pose_bone = owner.pose.bones[bone]
         arm, pose, basis = (_rotation(m) for m in (owner.matrix_world, pose_bone.matrix, pose_bone.matrix_basis))
         local = np.einsum("ij,kj,lk,flm,mn,np->fip", basis, pose, arm, world, arm, pose)
-        target, path = pose_bone, f'pose.bones["{bpy.utils.escape_identifier(bone)}"].rotation_quaternion'
     else:
         # world = W · basis (W: parent world · parent inverse); the turn about the pivot: basis' = Wᵀ D W · basis
         frame = _rotation(owner.matrix_world @ owner.matrix_basis.inverted())
         basis = _rotation(owner.matrix_basis)
         local = np.einsum("ji,fjk,kl,lm->fim", frame, world, frame, basis)
-        target, path = owner, "rotation_quaternion"
-    target.rotation_mode = "QUATERNION"
-    quats = _continuous([Matrix(m.tolist()).to_quaternion()[:] for m in local])
-    action = owner.animation_data.action if owner.animation_data and owner.animation_data.action else \
-        _new_action(owner, f"{name}_{owner.name}")
-    for i in range(4):
-        _curve(action, path, i, quats[:, i], start, group=bone or owner.name)
+    return _continuous([Matrix(m.tolist()).to_quaternion()[:] for m in local])
 
 
 def _rotation(matrix) -> np.ndarray:
