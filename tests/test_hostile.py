@@ -158,6 +158,10 @@ def test_row02_start_is_recorded_and_used(hostile, tmp_path):
     frame0 = next(rgb for _, rgb in iter_frames(hostile["video"], end=1))
     assert np.array_equal(first, resize_to_height(frame24, 120))
     assert not np.array_equal(first, resize_to_height(frame0, 120))
+    from keyshape.viewer.server import load_take
+
+    page = load_take(hostile["run"]).as_json()  # the viewer seeks the video to these times
+    assert page["video_times"][0] == pytest.approx(track.time[0], abs=1e-6) and len(page["video_times"]) == 36
 
 
 def _write_vfr(path: Path, frames: np.ndarray, ms: list[int]) -> Path:
@@ -273,7 +277,8 @@ def test_row08_keys_json_is_validated(hostile, tmp_path, capfd):
         return lambda d: d["regions"]["upper"]["indices"].__setitem__(0, value)
 
     cases = {
-        "minus_one": (set_index(-1), r"regions.upper.indices: landmark indices must be whole numbers in 0..477; got -1"),
+        "minus_one": (set_index(-1),
+                      r"regions.upper.indices: landmark indices must be whole numbers in 0..477; got -1"),
         "too_big": (set_index(999), r"regions.upper.indices: .*got 999"),
         "fraction": (set_index(7.5), r"regions.upper.indices: .*got 7.5"),
         "nan_shape": (lambda d: d["shapes"][first_key(d)["name"]][0].__setitem__(0, float("nan")),

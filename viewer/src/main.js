@@ -1,8 +1,11 @@
 // keyshape viewer: the source video and the animated character side by side, in sync.
 //
 // The video is the clock. Playing, the character is posed at video.currentTime; paused, at
-// the time of the frame shown, frame / fps with frame = round(currentTime * fps), so a paused
-// or scrubbed page shows exactly the weights of that frame in weights.csv.
+// the time of the frame shown, so a paused or scrubbed page shows exactly the weights of that
+// frame in weights.csv. Frame f of the take is the video's picture at take.video_times[f] (its
+// presentation time: a take tracked from --start 24 begins 24 frames into the video, a variable
+// frame rate clip keeps its own timing); the animation starts at the take's first frame, so the
+// character is posed at currentTime - video_times[0]. Without video_times, frame f is at f / fps.
 //
 // window.keyshape is a small hook for tests and scripts (see `hook` below).
 
@@ -22,12 +25,19 @@ async function main() {
   if (take.live) return runLive(take, hook, $, notice); // keyshape live --view
   const fps = take.fps;
   const lastFrame = take.n_frames - 1;
-  const frameAt = (t) => Math.min(Math.max(Math.round(t * fps), 0), lastFrame);
+  const source = Array.isArray(take.video_times) && take.video_times.length === take.n_frames
+    ? take.video_times : null;
+  const span = source ? source[lastFrame] - source[0] : lastFrame / fps;
   document.title = `keyshape · ${take.name}`;
   $('take').textContent = take.name;
 
   const [clock, character] = await Promise.all([
-    openClock(take, lastFrame / fps), Character.load(take.animation)]);
+    openClock(take, span), Character.load(take.animation)]);
+  // Clock seconds of frame f: the video's time of it, or (a timer) the animation's.
+  const origin = source && clock.kind === 'video' ? 0 : (source ? source[0] : 0);
+  const timeOf = (f) => (source ? source[f] - origin : f / fps);
+  const animationTime = (t) => (source && clock.kind === 'video' ? t - source[0] : t);
+  const frameAt = (t) => nearestFrame(timeOf, lastFrame, t);
   const stage = openStage(character);
   const panel = new WeightsPanel($('weights'), character.names, take.key_frames, (f) => seekFrame(f));
   const slider = $('scrub');
@@ -37,7 +47,7 @@ async function main() {
   let dragging = false;
   function update(force = false) {
     const frame = frameAt(clock.time);
-    const animTime = clock.paused ? frame / fps : clock.time;
+    const animTime = animationTime(clock.paused ? timeOf(frame) : clock.time);
     if (force || animTime !== posedAt) {
       character.setTime(animTime);
       panel.update(character.values());
@@ -45,7 +55,7 @@ async function main() {
     }
     if (!dragging) slider.value = String(frame);
     $('frame').textContent = `frame ${frame} / ${lastFrame}`;
-    $('time').textContent = `${(frame / fps).toFixed(3)} s`;
+    $('time').textContent = `${timeOf(frame).toFixed(3)} s`;
     $('play').textContent = clock.paused ? '▶ Play' : '❚❚ Pause';
     return frame;
   }
@@ -53,7 +63,7 @@ async function main() {
   async function seekFrame(frame) {
     const f = Math.min(Math.max(Math.round(frame), 0), lastFrame);
     // A hair past the frame's start time, so the decoder cannot land on the frame before.
-    await clock.seek(f / fps + Math.min(0.001, 0.25 / fps));
+    await clock.seek(timeOf(f) + Math.min(0.001, 0.25 / fps));
     return update(true);
   }
 
@@ -118,6 +128,18 @@ async function main() {
     rotation: () => character.rotation(),
     ready: true,
   });
+}
+
+/** The frame whose time (timeOf, increasing) is nearest to t, in 0..lastFrame. */
+function nearestFrame(timeOf, lastFrame, t) {
+  let low = 0;
+  let high = lastFrame;
+  while (low < high) { // the first frame at or after t
+    const mid = (low + high) >> 1;
+    if (timeOf(mid) < t) low = mid + 1;
+    else high = mid;
+  }
+  return low > 0 && t - timeOf(low - 1) < timeOf(low) - t ? low - 1 : low;
 }
 
 async function fetchJson(url) {

@@ -41,9 +41,9 @@ def run(args) -> None:
     from ..io.rig import parse_unit
 
     keys = load_keys(args.keys)
+    video = _video(args)
     check_kit_folder(args.output, overwrite=args.force)  # before any tracking
     _check_rig(args.rig)
-    video = _video(args)
     track = _track(args, video)
     kit = write_sculpt_kit(keys, args.rig, args.output, track=track, video=video,
                            unit=parse_unit(args.rig_unit), meshes=mesh_choice(args.mesh), overwrite=args.force)

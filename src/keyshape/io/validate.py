@@ -279,14 +279,15 @@ def _check_increasing_column(path, column: str, values: np.ndarray, lines: list[
 # -- take.json and the animation ------------------------------------------------------------------
 
 def check_take_info(path, info) -> None:
-    """Check ``take.json``: its format, ``fps`` > 0, ``n_frames`` >= 1, ``video`` a path,
-    ``files`` a map of names to file names, ``neutral_frame`` and ``image_size``."""
+    """Check ``take.json``: its format and, where given, ``fps`` > 0, ``n_frames`` >= 1, ``video``
+    a path, ``files`` a map of names to file names, ``neutral_frame`` and ``image_size``."""
     if not isinstance(info, dict) or info.get("format") != "keyshape-take":
         raise InputError(f"{path}: not a keyshape take description (expected \"format\": \"keyshape-take\")")
-    fps = info.get("fps")
+    fps = info.get("fps", 1.0)  # fps and n_frames: what `run` writes; a hand-made one may name only the video
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or not fps > 0:
-        raise _fail(path, "fps", f"must be a number > 0; got {_show(fps)}")
-    _whole(path, "n_frames", info.get("n_frames"), low=1)
+        raise _fail(path, "fps", f"must be a positive number; got {_show(fps)}")
+    if "n_frames" in info:
+        _whole(path, "n_frames", info["n_frames"], low=1)
     if info.get("neutral_frame") is not None:
         _whole(path, "neutral_frame", info["neutral_frame"], low=0)
     if info.get("video") is not None and not isinstance(info["video"], str):

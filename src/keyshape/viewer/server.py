@@ -66,6 +66,9 @@ class Take:
         Source frame of each key shape of this take, by key name (from ``keys.json``).
     animation : str
         File name of the animated ``.glb`` among ``files``.
+    video_times : tuple of float
+        The time in the source video of every frame (the track's ``time``: a take tracked from
+        ``--start`` or with a variable frame rate is not ``frame / fps``); empty without a track.
     """
 
     folder: Path
@@ -76,6 +79,7 @@ class Take:
     files: dict[str, Path] = field(default_factory=dict)
     key_frames: dict[str, int] = field(default_factory=dict)
     animation: str = "animation.glb"
+    video_times: tuple[float, ...] = ()
 
     def as_json(self) -> dict:
         """The page's view of the take: numbers, URLs of the files, key frames."""
@@ -85,7 +89,8 @@ class Take:
                 "video_name": self.video.name if self.video else None,
                 "animation": f"/media/{self.animation}",
                 "files": {name: f"/media/{name}" for name in self.files},
-                "key_frames": self.key_frames}
+                "key_frames": self.key_frames,
+                "video_times": list(self.video_times) if len(self.video_times) == self.n_frames else None}
 
 
 def load_take(folder: str | Path) -> Take:
@@ -113,9 +118,19 @@ def load_take(folder: str | Path) -> Take:
     check_glb(files[animation])
     video = Path(info["video"]) if info.get("video") else None
     keys_name = Path(listed.get("keys", "keys.json")).name
+    track = files.get(Path(listed.get("track", "track.npz")).name)
     return Take(folder, float(fps), n_frames, info.get("neutral_frame"),
                 video if video is not None and video.is_file() else None, files,
-                _key_frames(files.get(keys_name), video), animation)
+                _key_frames(files.get(keys_name), video), animation, _video_times(track))
+
+
+def _video_times(track: Path | None) -> tuple[float, ...]:
+    """The source time of every frame of the take's track (checked as every reader checks it)."""
+    if track is None:
+        return ()
+    from ..io.track import load_track
+
+    return tuple(round(float(t), 6) for t in load_track(track).time)
 
 
 def _key_frames(path: Path | None, video: Path | None) -> dict[str, int]:
