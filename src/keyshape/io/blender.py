@@ -68,7 +68,7 @@ def blender_command(script: str | Path) -> list[str]:
         chosen = sys.executable
     chosen = chosen or shutil.which("blender")
     if not chosen:
-        raise MissingDependencyError("bpy (Blender as a Python module) for FBX and .blend output", extra="blender")
+        raise MissingDependencyError("bpy (Blender as a Python module, for FBX and .blend)", extra="blender")
     if Path(chosen).name.lower().startswith("blender"):
         return [chosen, "--background", "--factory-startup", "--python-exit-code", "1", "--python", str(script), "--"]
     return [chosen, str(script)]
