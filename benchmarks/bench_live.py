@@ -32,10 +32,10 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from keyshape.app import discover_keys, solve_take  # noqa: E402
-from keyshape.capture import OneEuro, track_video  # noqa: E402
+from keyshape.app import discover_keys, solve_take
+from keyshape.capture import OneEuro, track_video
 
 CLIP = Path(str(resources.files("keyshape").joinpath("data/WolfgangLanger_Pexels.mp4")))
 CUTOFFS = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0)
@@ -90,6 +90,13 @@ def smoothing_table(track, keys) -> list[dict]:
     return rows
 
 
+def choose(rows: list[dict]) -> str:
+    """The rule behind ``DEFAULT_SMOOTHING``: the least lag among the settings whose jitter is at most
+    10 % above the zero-lag solve's own."""
+    allowed = 1.1 * rows[0]["jitter"]
+    return min((r for r in rows[2:] if r["jitter"] <= allowed), key=lambda r: r["lag"])["setting"]
+
+
 def _udp_sink() -> tuple[socket.socket, int]:
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
@@ -97,7 +104,7 @@ def _udp_sink() -> tuple[socket.socket, int]:
     return sink, sink.getsockname()[1]
 
 
-def latency(keys, *, smoothing=None) -> dict[str, float]:
+def latency(keys, *, smoothing=None, rate: float | None = None, cores=None) -> dict[str, float]:
     from keyshape.live import DEFAULT_SMOOTHING, LiveLinkSender, Session, VmcSender, open_source, run_live
     from keyshape.targets import Mapping
 
@@ -109,9 +116,10 @@ def latency(keys, *, smoothing=None) -> dict[str, float]:
         return Session([VmcSender("127.0.0.1", vmc_port, names=mapping.targets),
                         LiveLinkSender("127.0.0.1", ll_port, names=mapping.targets, fps=24)], mapping)
 
-    source = open_source(str(CLIP))
+    source = open_source(str(CLIP), fps=rate)
     began = time.perf_counter()
-    summary = run_live(source, setup, keys=keys, smoothing=smoothing or DEFAULT_SMOOTHING, say=lambda _: None)
+    summary = run_live(source, setup, keys=keys, smoothing=smoothing or DEFAULT_SMOOTHING, cores=cores,
+                       say=lambda _: None)
     wall = time.perf_counter() - began
     vmc_sink.close(), ll_sink.close()
     ms, detect = 1000 * summary.latency, 1000 * summary.detect
@@ -138,16 +146,20 @@ def main() -> None:
         bound = f"{row['bound_ms']:.0f}" if "bound_ms" in row else "-"
         print(f"| {row['setting']} | {bound} | {row['error']:.4f} | {row['jitter']:.4f} | {row['lag']:.2f} | "
               f"{row['corr']:.3f} |")
+    print(f"chosen (least lag with jitter <= 1.1 x the zero-lag solve's): {choose(rows)}")
     if args.skip_latency:
         return
-    print("| run | frames | processed | dropped | latency p50 / p99 / max (ms) | MediaPipe p50 / p99 | "
-          "the rest p50 / p99 | live s | wall s | load |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| run | fps | cores | frames | processed | dropped | latency p50 / p99 / max (ms) | MediaPipe p50 / p99 | "
+          "the rest p50 / p99 | live s | load |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for run in range(args.repeats):
-        r = latency(keys)
-        print(f"| {run + 1} | {r['frames']} | {r['processed']} | {r['dropped']} | {r['p50']:.1f} / {r['p99']:.1f} / "
-              f"{r['max']:.1f} | {r['detect_p50']:.1f} / {r['detect_p99']:.1f} | {r['rest_p50']:.2f} / "
-              f"{r['rest_p99']:.2f} | {r['live_s']:.1f} | {r['wall_s']:.1f} | {r['load']:.1f} |")
+        for rate in (None, 30.0):
+            for cores in (None, (0, 1)):
+                r = latency(keys, rate=rate, cores=cores)
+                print(f"| {run + 1} | {rate or 23.976:g} | {'pinned 0 / 1' if cores else 'free'} | {r['frames']} | "
+                      f"{r['processed']} | {r['dropped']} | {r['p50']:.1f} / {r['p99']:.1f} / {r['max']:.1f} | "
+                      f"{r['detect_p50']:.1f} / {r['detect_p99']:.1f} | {r['rest_p50']:.2f} / {r['rest_p99']:.2f} | "
+                      f"{r['live_s']:.1f} | {r['load']:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

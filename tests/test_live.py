@@ -5,7 +5,6 @@ python-osc receiver, the recording, faults, the browser view)."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import socket
@@ -18,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_viewer import browser  # noqa: F401 - Debian's Chromium under Playwright (a fixture)
 
-from keyshape.containers import KeyShapes, Track
+from keyshape.containers import KeyShapes
 from keyshape.datasets import make_performance
 from keyshape.exceptions import InputError, RigError
 from keyshape.io.livelink import LIVELINK_NAMES, ROTATION_NAMES
@@ -41,7 +41,6 @@ from keyshape.live.livelink import PACKET_NAMES
 from keyshape.live.osc import bundle, message
 
 from conftest import write_video
-from test_viewer import browser  # noqa: F401 - Debian's Chromium under Playwright (a fixture)
 
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 
@@ -217,7 +216,7 @@ def test_a_file_plays_at_its_own_rate_and_a_slow_reader_drops(grey_clip):
 
 
 def test_sources_are_named_clearly(tmp_path):
-    with pytest.raises(InputError, match="not a camera .* a video file or a stream URL"):
+    with pytest.raises(InputError, match=r"not a camera .* a video file or a stream URL"):
         open_source(str(tmp_path / "nothing.mp4"))
     if sys.platform.startswith("linux") and not Path("/dev/video7").exists():
         with pytest.raises(InputError, match="cannot open this camera"):
@@ -400,7 +399,7 @@ def test_live_usage_errors(capsys):
 
 @pytest.mark.browser
 @pytest.mark.slow
-def test_viewer_shows_live_weights_while_a_clip_plays(browser, demo_clip, clip_keys):
+def test_viewer_shows_live_weights_while_a_clip_plays(browser, demo_clip, clip_keys):  # noqa: F811
     proc = _live(demo_clip, "--keys", clip_keys, "--view", "--no-browser", "--duration", "25")
     try:
         url = None

@@ -8,6 +8,7 @@ time. The loop stops when the source ends or fails, on Ctrl-C or SIGTERM, or whe
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -20,7 +21,7 @@ from ..containers import KeyShapes, Track, Weights
 from ..exceptions import InputError, Terminated
 from .frame import LiveFrame, Output
 from .solver import DEFAULT_SMOOTHING, LiveSolver
-from .sources import FrameSource, Mailbox
+from .sources import FrameSource, Mailbox, pin_thread
 
 __all__ = ["run_live", "Controls", "Session", "LiveSummary"]
 
@@ -99,7 +100,7 @@ def _calibrate(mailbox: Mailbox, tracker: _Tracker, seconds: float, fps: float, 
     from ..app import discover_keys
 
     say(f"calibrating: make every expression you will use for {seconds:g} s (range of motion) ...")
-    points, first = [], None
+    points, first, seen = [], None, []
     while True:
         frame = mailbox.get(0.1)
         if frame is None:
@@ -109,6 +110,7 @@ def _calibrate(mailbox: Mailbox, tracker: _Tracker, seconds: float, fps: float, 
         first = frame.time if first is None else first
         chosen = tracker(frame)
         points.append(chosen.points if chosen is not None else np.full((478, 3), np.nan))
+        seen.append((frame, chosen))
         if frame.time - first >= seconds:
             break
     track = Track(np.array(points) if points else np.zeros((0, 478, 3)), fps)
@@ -117,7 +119,15 @@ def _calibrate(mailbox: Mailbox, tracker: _Tracker, seconds: float, fps: float, 
                          f"in {seconds:g} s; face the camera and try again")
     keys = discover_keys(track, take="calibration")
     say(f"calibrated on {track.n_frames} frames ({int(track.valid.sum())} with a face): {keys.n_keys} keys")
-    return keys
+    return keys, seen
+
+
+def _replay_calibration(seen, outputs, keys: KeyShapes) -> None:
+    """Hand the calibration's frames to the outputs that keep a record (``calibration`` method)."""
+    nothing = np.full(keys.n_keys, np.nan)
+    for output in outputs:
+        if hasattr(output, "calibration"):
+            output.calibration([(frame.index, chosen) for frame, chosen in seen], nothing)
 
 
 def _values(solve, mapping, names, fps) -> np.ndarray:
@@ -132,7 +142,8 @@ def _values(solve, mapping, names, fps) -> np.ndarray:
 def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys: KeyShapes | None = None,
              calibrate: float | None = None, upper: float | None = 1.0, smoothing: dict | None = DEFAULT_SMOOTHING,
              tracker_options: TrackerOptions | None = None, face: int = 0, controls: Controls | None = None,
-             duration: float | None = None, say: Callable[[str], None] = print) -> LiveSummary:
+             duration: float | None = None, cores: tuple[int, int] | None = None,
+             say: Callable[[str], None] = print) -> LiveSummary:
     """Drive ``setup(keys)``'s outputs from ``source`` until it ends or is stopped.
 
     Parameters
@@ -144,6 +155,8 @@ def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys
     tracker_options, face : MediaPipe's settings and which face to follow (as offline)
     controls : stop / neutral requests; Ctrl-C and SIGTERM stop too
     duration : seconds of live frames after which to stop (None: until the source ends)
+    cores : ``(tracking, decoding)``: run MediaPipe (and the loop) on the first core, the source's
+        decoding on the second (Linux); None leaves the scheduler free (see BENCHMARKS.md)
 
     Returns
     -------
@@ -156,20 +169,27 @@ def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys
     latency, detect = [], []
     outputs: list[Output] = []
     start = time.perf_counter()
+    previous_cores = pin_thread(cores[0]) if cores else None  # MediaPipe's threads inherit it
     try:
         with MediaPipeTracker(tracker_options or TrackerOptions()) as mediapipe:
             tracker = _Tracker(mediapipe, face)
             _warm_up(tracker, source.size)
             calibrating = keys is None
             if calibrating:
-                keys = _calibrate(source.start(), tracker, float(calibrate), source.fps, say)
+                keys, seen = _calibrate(source.start(cpu=cores[1] if cores else None), tracker,
+                                        float(calibrate), source.fps, say)
             _warm_up_solver(keys)
             summary.keys = keys
             session = setup(keys)
             outputs = session.outputs
+            if calibrating:
+                _replay_calibration(seen, outputs, keys)
+                del seen
             solver = LiveSolver(keys, fps=source.fps, upper=upper, smoothing=smoothing)
-            mailbox = source.mailbox if calibrating else source.start()
-            base_delivered, base_dropped = mailbox.delivered - mailbox.pending, mailbox.dropped
+            mailbox = source.mailbox if calibrating else source.start(cpu=cores[1] if cores else None)
+            if calibrating:
+                mailbox.get(timeout=0)  # stale: it arrived while the session was set up
+            base_delivered, base_dropped = mailbox.delivered, mailbox.dropped
             start = time.perf_counter()
             deadline = start + duration if duration else float("inf")
             while not controls.stop.is_set() and time.perf_counter() < deadline:
@@ -203,6 +223,8 @@ def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys
         summary.delivered = source.mailbox.delivered
         summary.dropped = source.mailbox.dropped
     finally:
+        if previous_cores is not None:
+            os.sched_setaffinity(0, previous_cores)
         source.stop()
         summary.seconds = time.perf_counter() - start
         summary.processed = len(latency)

@@ -54,7 +54,7 @@ class Recorder:
         self.blendshape_names = tuple(blendshape_names)
         self._spool = Path(tempfile.mkdtemp(prefix=".live-spool-", dir=self.folder))
         self._stack = ExitStack()
-        self._files = {name: self._stack.enter_context(open(self._spool / f"{name}.f32", "wb"))
+        self._files = {name: self._stack.enter_context(open(self._spool / f"{name}.f32", "wb"))  # noqa: SIM115
                        for name in ("points", "scores", "matrix", "weights")}
         self._sizes = {"points": keys.n_landmarks * 3, "scores": len(blendshape_names) or 52,
                        "matrix": 16, "weights": keys.n_keys}
@@ -66,6 +66,14 @@ class Recorder:
             self._write(None, None)
         if frame.index == self.n_frames:
             self._write(frame.detection if frame.face else None, frame.keys)
+
+    def calibration(self, frames, keys: np.ndarray) -> None:
+        """Record the calibration's ``(index, detection)`` frames (before the session's first frame)."""
+        for index, detection in frames:
+            while self.n_frames < index:
+                self._write(None, None)
+            if index == self.n_frames:
+                self._write(detection, keys)
 
     def _write(self, detection, keys) -> None:
         parts = {"points": None, "scores": None, "matrix": None, "weights": keys}

@@ -40,7 +40,7 @@ class Solve:
     """One frame's result: ``keys (n_keys,)`` weights (NaN until a face is seen), ``head (4,)`` and
     ``eyes (2, 4)`` or None as glTF-axis quaternions, ``face`` whether this frame had one."""
 
-    __slots__ = ("keys", "raw", "head", "eyes", "face")
+    __slots__ = ("eyes", "face", "head", "keys", "raw")
 
     def __init__(self, keys, raw, head, eyes, face):
         self.keys, self.raw, self.head, self.eyes, self.face = keys, raw, head, eyes, face

@@ -26,7 +26,7 @@ import numpy as np
 from ..capture import iter_frames, probe
 from ..exceptions import InputError
 
-__all__ = ["SourceFrame", "Mailbox", "FrameSource", "open_source", "camera_input"]
+__all__ = ["SourceFrame", "Mailbox", "FrameSource", "open_source", "camera_input", "pin_thread"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,10 +154,10 @@ class FrameSource:
         stream = self._container.streams.video[0]
         return float(fps or stream.average_rate or stream.guessed_rate or 30), (stream.width, stream.height)
 
-    def start(self) -> Mailbox:
-        """Start delivering frames (in a thread); returns the mailbox to read them from."""
+    def start(self, *, cpu: int | None = None) -> Mailbox:
+        """Start delivering frames (in a thread, on core ``cpu`` if given); returns the mailbox."""
         target = self._play_file if self.kind == "file" else self._read_live
-        self._thread = threading.Thread(target=self._guarded, args=(target,), daemon=True,
+        self._thread = threading.Thread(target=self._guarded, args=(target, cpu), daemon=True,
                                         name=f"keyshape-live-{self.kind}")
         self._thread.start()
         return self.mailbox
@@ -171,7 +171,9 @@ class FrameSource:
             container.close()
             self._container = None
 
-    def _guarded(self, target) -> None:
+    def _guarded(self, target, cpu: int | None = None) -> None:
+        if cpu is not None:
+            pin_thread(cpu)
         try:
             target()
         except Exception as exc:  # noqa: BLE001 - the loop reports it as the reason the source stopped
@@ -206,6 +208,17 @@ class FrameSource:
         if not self._stop.is_set() and self.kind == "camera":
             raise OSError("end of the camera's stream (unplugged?)")
         self.mailbox.close()
+
+
+def pin_thread(cpu: int) -> set[int] | None:
+    """Run the calling thread on core ``cpu`` only (Linux); returns its previous cores (None: not possible)."""
+    import os
+
+    if not hasattr(os, "sched_setaffinity") or cpu not in os.sched_getaffinity(0):
+        return None
+    previous = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu})  # on Linux, 0 is the calling thread
+    return previous
 
 
 def open_source(spec: str, **options) -> FrameSource:
