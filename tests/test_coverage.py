@@ -3,11 +3,12 @@
 import json
 
 import pytest
-from conftest import read_frames, write_video
 
 from keyshape.capture.rom import ROM_SCRIPT, rom_duration
 from keyshape.cli import main
 from keyshape.io import load_keys, load_track, save_track
+
+from conftest import read_frames, write_video
 
 pytestmark = pytest.mark.slow
 
@@ -89,7 +90,7 @@ def test_the_rom_script_covers_each_part_and_each_side(capsys):
 
 def test_keys_builds_one_set_from_a_rom_video_and_a_take(demo_clip, halves, tmp_path):
     """A video among the takes is tracked first (here a short stretch of the real clip plays the ROM)."""
-    folder, first, _ = halves
+    _, first, _ = halves
     rom = write_video(tmp_path / "rom.mp4", read_frames(demo_clip, 60))
     out = tmp_path / "k.json"
     assert main(["keys", str(rom), str(first), "-o", str(out), "-q", "--count", "4"]) == 0

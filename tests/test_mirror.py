@@ -12,12 +12,18 @@ import json
 import numpy as np
 import pytest
 
-from keyshape.app import coverage, discover_keys, extend_keys, fit_errors
+from keyshape.app import coverage, discover_keys, extend_keys, fit_errors, sculpt_targets, solve_take
 from keyshape.capture.model_file import canonical_face
-from keyshape.containers import KeyShapes, Track
-from keyshape.io import load_keys, save_keys
+from keyshape.cli import main
+from keyshape.containers import KeyShapes, Rig, Track, Weights
+from keyshape.io import load_keys, load_rig, save_keys, save_weights_csv
+from keyshape.io.gltf import write_glb
 from keyshape.keyshapes import add_mirrors, find_mirror_pairs, mirror_deltas, mirror_gains, symmetry_plane
+from keyshape.mesh import mirror_field, mirror_map
 from keyshape.schemes import mirror_pairs
+from keyshape.targets import complete_mirrors, mirror_sources, proposer, stylised_head
+
+from gltf_validator import unavailable_reason, validate
 
 # MediaPipe ids: mouth corners (the person's right at image left), eyelids, brows
 RIGHT_CORNER, LEFT_CORNER = 61, 291
@@ -184,3 +190,48 @@ def test_coverage_finds_the_frames_out_of_reach(takes):
     assert curve[0] > 0.7 > curve[-1] and all(a >= b for a, b in itertools.pairwise(curve))
     covered = coverage(extend_keys(keys, second, max_error=0.7, mirror=False), second, max_error=0.7)
     assert covered.summary()["lower"]["frames_out_of_reach"] == 0
+
+
+def test_a_mirrored_target_is_made_from_its_source_on_a_symmetric_mesh():
+    head = stylised_head().rig
+    _, normal = mirror_map(head.vertices)
+    assert abs(normal[0]) == 1.0
+    left = head.vertices[:, 0] > 0.01
+    source = np.zeros_like(head.vertices)
+    source[left, 1] = 0.004  # the left half lifts
+    rig = Rig(head.vertices, head.faces, np.stack([source, np.zeros_like(source)]), ("lower_00", "lower_00_mirror"))
+    made, names = complete_mirrors(rig, {"lower_00_mirror": "lower_00"})
+    assert names == ["lower_00_mirror"]
+    mirrored = made.deltas[1]
+    right = head.vertices[:, 0] < -0.02  # clear of the midline, whose partners may sit on either side
+    assert np.mean(np.abs(mirrored[right, 1] - 0.004) < 1e-9) > 0.99
+    assert np.mean(np.abs(mirrored[head.vertices[:, 0] > 0.02]).max(axis=1) < 1e-9) > 0.99
+    sculpted = Rig(head.vertices, head.faces, np.stack([source, 0.5 * source]), rig.names)
+    assert complete_mirrors(sculpted, {"lower_00_mirror": "lower_00"})[1] == []  # the artist's own stays
+    missing = Rig(head.vertices, head.faces, source[None], ("lower_00",))
+    assert complete_mirrors(missing, mirror_sources(["lower_00", "lower_00_mirror"]))[0].names == rig.names
+
+
+def test_retarget_makes_the_mirrored_targets_a_sculpted_file_lacks(takes, tmp_path):
+    """The artist sculpts the frame keys only; `retarget` drives the mirrored keys with mirrored targets."""
+    _, _, first, second = takes
+    keys = discover_keys(first, n_keys=4, neutral=0)
+    assert keys.mirrored.any()
+    head = stylised_head()
+    kit = sculpt_targets(keys, head.rig, propose=proposer(correspondence=head.correspondence(468)))
+    assert np.abs(kit.deltas[keys.mirrored]).max() == 0 and np.abs(kit.deltas[~keys.mirrored]).max() > 0
+    sculpted = write_glb(tmp_path / "sculpted.glb", kit, Weights(np.zeros((0, kit.n_targets)), kit.names, 30.0))
+    weights = save_weights_csv(solve_take(second, keys).weights, tmp_path / "w.csv")
+    before = sculpted.read_bytes()
+    out = tmp_path / "anim.glb"
+    assert main(["retarget", str(weights), "--rig", str(sculpted), "-o", str(out), "-q"]) == 0
+    assert sculpted.read_bytes() == before
+    animated = load_rig(out)
+    pairs, normal = mirror_map(kit.vertices)
+    for k in np.flatnonzero(keys.mirrored):
+        source = kit.names.index(keys.mirror_of[k])
+        expected = mirror_field(kit.deltas[source], pairs, normal)
+        np.testing.assert_allclose(animated.deltas[animated.names.index(keys.names[k])], expected, atol=1e-6)
+    if unavailable_reason() is None:
+        report = validate(out)
+        assert (report["numErrors"], report["numWarnings"]) == (0, 0), report["messages"]

@@ -15,7 +15,8 @@ from scipy import sparse
 
 from .exceptions import InputError
 
-__all__ = ["face_normals", "NormalEstimator", "mesh_components", "snap_to_surface", "weld_vertices"]
+__all__ = ["face_normals", "NormalEstimator", "mesh_components", "snap_to_surface", "weld_vertices", "mirror_map",
+           "mirror_field"]
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -184,3 +185,67 @@ def weld_vertices(vertices: np.ndarray, *, tolerance: float = 1e-6) -> tuple[np.
     _, index = np.unique(np.round(vertices / step).astype(np.int64), axis=0, return_inverse=True)
     index = index.reshape(-1)
     return index, int(index.max(initial=-1)) + 1
+
+
+MIRROR_TOLERANCE = 0.01  # a symmetric mesh's reflected vertices land within 1 % of its size of a vertex
+
+
+def mirror_map(vertices: np.ndarray, *, tolerance: float = MIRROR_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """The left-right symmetry of a character mesh: each vertex's mirror partner, and the plane's normal.
+
+    Each of the three axes is tried as the plane's normal (the plane through the median of the
+    vertices along it, refitted to the matches): the vertices are reflected and matched to their
+    nearest vertex; the axis whose reflection lands closest wins.
+
+    Parameters
+    ----------
+    vertices : (n_vertices, 3) float
+    tolerance : float, the largest median distance from a reflected vertex to its match, as a
+        fraction of the mesh's size (the diagonal of its bounding box)
+
+    Returns
+    -------
+    (pairs (n_vertices,) int, normal (3,) float unit vector)
+
+    Raises
+    ------
+    RigError
+        When no axis gives a symmetric mesh.
+
+    Examples
+    --------
+    >>> v = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [-0.5, -1, 0], [0.5, -1, 0]])
+    >>> pairs, normal = mirror_map(v)
+    >>> pairs.tolist(), normal.tolist()
+    ([1, 0, 2, 4, 3], [1.0, 0.0, 0.0])
+    """
+    from scipy.spatial import cKDTree
+
+    from .exceptions import RigError
+
+    points = np.asarray(vertices, dtype=float)
+    size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
+    tree = cKDTree(points)
+    best = None
+    for axis in range(3):
+        normal = np.eye(3)[axis]
+        offset = float(np.median(points[:, axis]))
+        for _ in range(2):  # refit the plane to the matches once
+            reflected = points.copy()
+            reflected[:, axis] = 2 * offset - points[:, axis]
+            distance, pairs = tree.query(reflected)
+            offset = float(np.median((points[:, axis] + points[pairs, axis]) / 2))
+        score = float(np.median(distance)) / size
+        if best is None or score < best[0]:
+            best = (score, pairs, normal)
+    score, pairs, normal = best
+    if score > tolerance:
+        raise RigError(f"the character's mesh is not left-right symmetric (reflected vertices miss by "
+                       f"{100 * score:.1f} % of its size): sculpt the mirrored targets yourself")
+    return pairs, normal
+
+
+def mirror_field(deltas: np.ndarray, pairs: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """The mirror image ``d'_v = (I − 2nnᵀ) d_p(v)`` of per-vertex offsets ``(..., n_vertices, 3)``."""
+    swapped = np.asarray(deltas, dtype=float)[..., pairs, :]
+    return swapped - 2 * (swapped @ normal)[..., None] * normal

@@ -39,7 +39,8 @@ from ._ray import RayRunner, ray_available
 from ._run import OUTPUT_FILES, RunOptions, TakeSummary, run_take
 from ._sculpt import SculptKit, check_kit_folder, contact_sheet, sculpt_targets, write_sculpt_kit
 
-__all__ = ["discover_keys", "extend_keys", "coverage", "Coverage", "solve_take", "Solved", "fit_errors", "head_poses", "head_and_gaze", "arkit_scores",
+__all__ = ["discover_keys", "extend_keys", "coverage", "Coverage",
+           "solve_take", "Solved", "fit_errors", "head_poses", "head_and_gaze", "arkit_scores",
            "key_scores",
            "run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES",
            "batch", "BatchRow", "find_takes", "format_table", "is_complete", "make_runner", "VIDEO_SUFFIXES",

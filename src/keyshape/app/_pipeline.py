@@ -327,5 +327,18 @@ def key_scores(keys: KeyShapes, track: Track):
     frames = np.asarray(keys.frames, dtype=np.int64)
     if max(int(frames.max(initial=0)), keys.neutral_frame) >= track.n_frames:
         return None
-    return KeyScores(track.blendshapes[keys.neutral_frame], track.blendshapes[frames], tuple(track.blendshape_names))
+    names = tuple(track.blendshape_names)
+    neutral, rows = track.blendshapes[keys.neutral_frame], track.blendshapes[frames].copy()
+    if keys.mirrored.any():  # a mirrored key's scores: its source's change from the neutral, sides swapped
+        swap = [names.index(_other_side(n)) if _other_side(n) in names else i for i, n in enumerate(names)]
+        rows[keys.mirrored] = neutral + (rows[keys.mirrored] - neutral)[:, swap]
+    return KeyScores(neutral, rows, names)
+
+
+def _other_side(name: str) -> str:
+    """ARKit's ``...Left`` <-> ``...Right`` (the actor's sides); other names are their own."""
+    for side, other in (("Left", "Right"), ("Right", "Left")):
+        if name.endswith(side):
+            return name[: -len(side)] + other
+    return name
 

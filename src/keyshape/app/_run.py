@@ -102,7 +102,17 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
     rig = loaded if loaded is not None else load_rig(options.rig)
     if options.mapping is not None:
         return rig, Mapping.from_file(options.mapping, targets=rig.names), True, None
+    rig = with_mirrored_targets(rig, keys)
     return rig, Mapping.by_name(keys.names, rig.names), True, None
+
+
+def with_mirrored_targets(rig: Rig, keys: KeyShapes) -> Rig:
+    """A sculpted character with its mirrored keys' targets made where the artist left them out or
+    neutral (:func:`keyshape.targets.complete_mirrors`); the rig as it is otherwise."""
+    from ..targets import complete_mirrors
+
+    mirror_of = {n: m for n, m in zip(keys.names, keys.mirror_of) if m}
+    return complete_mirrors(rig, mirror_of)[0] if mirror_of else rig
 
 
 def _read_inputs(options: RunOptions, video: Path, track: Track | None) -> tuple[Rig | None, KeyShapes | None]:
@@ -170,12 +180,32 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     anim = retarget(solved.weights, mapping)
     source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
+    if source is not None and options.mapping is None and not options.auto_targets \
+            and _mirrors_made(rig, keys, source):  # mirrored keys' targets made: the file gets them
+        from ..io.gltf import write_gltf_targets
+
+        source = write_gltf_targets(source, stage / ".character.glb", rig)
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes)
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
                source=source, eyes=eyes)
     save_take_info(stage / "take.json", video=video, track=track, keys=keys)
+    (stage / ".character.glb").unlink(missing_ok=True)
+
+
+def _mirrors_made(rig: Rig, keys: KeyShapes, source: Path) -> bool:
+    """Whether ``rig`` holds mirrored keys' targets that the file ``source`` lacks or holds neutral."""
+    if not keys.mirrored.any():
+        return False
+    from ..io.rig import load_rig
+
+    original = load_rig(source)
+    for name in (n for n, m in zip(keys.names, keys.mirror_of) if m and n in rig.names):
+        if name not in original.names or not np.array_equal(original.deltas[original.names.index(name)],
+                                                            rig.deltas[rig.names.index(name)]):
+            return True
+    return False
 
 
 def _check_formats(formats) -> None:

@@ -76,10 +76,11 @@ def sculpt_targets(keys: KeyShapes, neutral: Rig, *, propose: Proposer | None = 
     base = Rig(neutral.vertices, neutral.faces, np.zeros((0, neutral.n_vertices, 3)), ())
     deltas = np.zeros((keys.n_keys, neutral.n_vertices, 3))
     if propose is not None:
-        deltas = np.asarray(propose(keys, base), dtype=float)
+        deltas = np.array(propose(keys, base), dtype=float)
         if deltas.shape != (keys.n_keys, neutral.n_vertices, 3) or not np.isfinite(deltas).all():
             raise RigError(f"propose must return finite deltas of shape ({keys.n_keys}, "
                            f"{neutral.n_vertices}, 3); got {deltas.shape}")
+        deltas[keys.mirrored] = 0.0  # a mirrored key's target is made from its source's (targets.complete_mirrors)
     return Rig(neutral.vertices, neutral.faces, deltas, keys.names)
 
 
@@ -274,9 +275,15 @@ def _face_box(points: np.ndarray, image_size) -> tuple[int, int, int, int]:
 
 def _write_readme(path: Path, keys: KeyShapes, track: Track, video: Path, rig: Path, targets: Rig) -> Path:
     rows = [f"| `{keys.names[k]}` | {keys.key_regions[k]} | {int(track.frame_index[keys.frames[k]])} | "
-            f"{track.time[keys.frames[k]]:.2f} |" for k in range(keys.n_keys)]
+            f"{track.time[keys.frames[k]]:.2f} | "
+            + (f"no: the mirror image of `{keys.mirror_of[k]}`" if keys.mirror_of[k] else "yes") + " |"
+            for k in range(keys.n_keys)]
+    n_mirrored = int(keys.mirrored.sum())
+    mirrored = "" if not n_mirrored else _MIRRORED.format(n=n_mirrored, example=keys.names[int(keys.mirrored.argmax())],
+                                                          source=keys.mirror_of[int(keys.mirrored.argmax())])
     text = _README.format(n_keys=keys.n_keys, video=video.name, rig=rig.name, n_vertices=targets.n_vertices,
-                          neutral=int(keys.neutral_frame), table="\n".join(rows), first=keys.names[0])
+                          neutral=int(keys.neutral_frame), table="\n".join(rows), first=keys.names[0],
+                          to_sculpt=keys.n_keys - n_mirrored, mirrored=mirrored)
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return path
@@ -287,6 +294,7 @@ _README = """# Sculpt kit: {n_keys} key shapes
 keyshape found {n_keys} **key shapes** in `{video}`: real frames of the performance that, blended
 with non-negative weights, reproduce every other frame. Give the character one target per key
 shape, sculpted as *its* version of that expression, and the same weights will animate it.
+You sculpt {to_sculpt} of them; the others are mirror images of a sculpted one.{mirrored}
 
 | file | what |
 |---|---|
@@ -318,7 +326,18 @@ Units and axes: glTF metres, +Y up, the character facing +Z. The neutral frame i
 
 ## Key shapes
 
-| name | region | frame | time (s) |
-|---|---|---|---|
+| name | region | frame | time (s) | sculpt? |
+|---|---|---|---|---|
 {table}
 """.replace("{glb}", GLB).replace("{sheet}", SHEET)  # noqa: E501 - markdown table rows cannot wrap
+
+_MIRRORED = """
+
+**Mirrored keys ({n}).** A key such as `{example}` is the left-right mirror image of `{source}` (the
+same frame, reflected through the face's symmetry plane): it lets a one-sided move the actor made on
+one side drive the other side too. Leave its target as it is (neutral): when keyshape animates the
+character it makes the target as the mirror image of `{source}`'s on a symmetric mesh. To make or
+adjust it yourself in Blender: select `{source}`'s shape key, *Shape Key Specials > New Shape from Mix*
+with only it at 1 (or duplicate it), rename the copy `{example}`, then *Shape Key Specials > Mirror
+Shape Key* (tick *Topology Mirror* for a mesh whose halves are not placed exactly symmetric). A
+sculpted (non-neutral) mirrored target is used as it is."""

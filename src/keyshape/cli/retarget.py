@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
-from ..exceptions import InputError
+from ..exceptions import InputError, UsageError
 from ._options import add_rig_options
 
 DESCRIPTION = (
@@ -14,7 +15,8 @@ DESCRIPTION = (
     ".usdz (UsdSkel; a USD rig's stage kept whole), .csv (target weights) or --format livelink "
     "(Live Link Face CSV for ARKit-named targets), .fbx or .blend (through Blender's own exporters: "
     'pip install "keyshape[blender]"; a glTF rig\'s file kept whole). With --track, the head rotation '
-    "is written too."
+    "is written too. A mirrored key (named KEY_mirror) whose target the rig lacks or holds neutral gets "
+    "the mirror image of KEY's target on the symmetric mesh."
 )
 EPILOG = """\
 mapping file (JSON, gains >= 0; a key may drive several targets):
@@ -64,15 +66,27 @@ def run(args) -> None:
         check_blender()  # before any output is written
     weights = load_weights_csv(args.weights)
     rig = _rig(args, formats, Format)
+    made = []
+    if rig is not None and args.map is None:  # mirrored keys' targets, made from their sources'
+        from ..targets import complete_mirrors, mirror_sources
+
+        rig, made = complete_mirrors(rig, mirror_sources(weights.names))
     anim = retarget(weights, _mapping(args, weights, rig))
     poses, gaze = _poses(args, weights)
     eyes = gaze.rotations() if gaze is not None else None
     source = args.rig if rig is not None and args.rig.is_file() and args.rig.suffix.lower() != ".obj" else None
-    for out, chosen in zip(args.output, formats):
-        export(anim, out, rig=rig, poses=poses, format=chosen, source=source, head=args.head,
-               eyes=eyes)
-        if not args.quiet:
-            print(_summary(out, chosen, anim, Format))
+    with tempfile.TemporaryDirectory(prefix="keyshape-retarget-") as scratch:
+        if made and source is not None and source.suffix.lower() in (".glb", ".gltf"):
+            from ..io.gltf import write_gltf_targets
+
+            source = write_gltf_targets(source, Path(scratch) / "character.glb", rig)
+        for out, chosen in zip(args.output, formats):
+            export(anim, out, rig=rig, poses=poses, format=chosen, source=source, head=args.head,
+                   eyes=eyes)
+            if not args.quiet:
+                print(_summary(out, chosen, anim, Format))
+    if made and not args.quiet:
+        print(f"mirrored targets made from their sources: {', '.join(made)}")
 
 
 def _rig(args, formats, Format):
@@ -81,7 +95,7 @@ def _rig(args, formats, Format):
     if args.rig is not None:
         return load_rig(args.rig, unit=parse_unit(args.rig_unit))
     if args.map is None or any(f not in (Format.CSV, Format.LIVELINK) for f in formats):
-        raise InputError("--rig is required (only CSV and Live Link outputs through --map can do without)")
+        raise UsageError("--rig is required (only CSV and Live Link outputs through --map can do without)")
     return None
 
 

@@ -7,13 +7,15 @@
 * :func:`transfer_expressions` — the transfer itself (deformation transfer on the mesh);
 * :class:`Correspondence`, :func:`find_correspondence`, :func:`read_correspondence` — where the
   landmarks sit on the character (given in a file, or found on a render);
-* :func:`stylised_head`, :func:`default_character` — keyshape's built-in character.
+* :func:`stylised_head`, :func:`default_character` — keyshape's built-in character;
+* :func:`complete_mirrors` — mirrored keys' targets made from their sources' on a symmetric mesh.
 """
 
 from ._character import Character, canonical_face, stylised_head
 from ._correspond import Correspondence, correspondence_from_dict, read_correspondence
 from ._correspond_auto import find_correspondence
 from ._mapping import Mapping, retarget
+from ._mirrored import complete_mirrors, mirror_sources
 from ._propose import (
     AutoTargets,
     KeyScores,
@@ -26,7 +28,7 @@ from ._propose import (
 )
 from ._transfer import LandmarkMotion, feature_groups, landmark_motion, spread, transfer_expressions
 
-__all__ = ["Mapping", "retarget",
+__all__ = ["Mapping", "retarget", "complete_mirrors", "mirror_sources",
            "AutoTargets", "KeyScores", "auto_targets", "propose_targets", "propose_mapping", "proposer",
            "resolve_correspondence",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
