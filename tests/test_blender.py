@@ -83,6 +83,21 @@ print("RESULT " + json.dumps({"fps": scene.render.fps / scene.render.fps_base, "
 """
 
 
+# the raw FBX, through the parser of Blender's own FBX add-on: every DeformPercent curve's key values
+DEFORM_PERCENT = """
+import sys, json, bpy
+from io_scene_fbx import parse_fbx
+root, _ = parse_fbx.parse(sys.argv[-1])
+section = {e.id: e for e in root.elems}
+objects = {e.props[0]: e for e in section[b"Objects"].elems}
+channels = {u for u, e in objects.items() if e.id == b"AnimationCurveNode" and e.props[1].startswith(b"DeformPercent")}
+curves = [next(x for x in objects[c.props[1]].elems if x.id == b"KeyValueFloat").props[0]
+          for c in section[b"Connections"].elems
+          if c.props[0] == b"OP" and c.props[2] in channels and objects[c.props[1]].id == b"AnimationCurve"]
+print("RESULT " + json.dumps([list(v) for v in curves]))
+"""
+
+
 def _robot_take(tmp_path, n_frames=18, fps=25.0):
     rng = np.random.default_rng(3)
     weights = Weights(rng.random((n_frames, 3)), tuple(ROBOT_MAP), fps=fps)
@@ -117,6 +132,12 @@ def test_retarget_robot_to_fbx_and_blend_through_a_3_target_map(tmp_path, suffix
             assert curves[f'key_blocks["{target}"].value'] == list(range(1, weights.n_frames + 1))  # every frame
             np.testing.assert_allclose([f[target] for f in frames], series, atol=1e-4)
     assert set(expected) == {"Angry", "Surprised", "Sad"}
+    if suffix == ".fbx":  # in the file itself, blend-shape channels run 0-100
+        curves = _blender(tmp_path, DEFORM_PERCENT, out)
+        assert len(curves) == 3 * len(seen["values"])  # three channels on each head mesh
+        series = [100 * s for s in expected.values()]
+        for curve in curves:
+            assert any(np.allclose(curve, x, atol=1e-3) for x in series), curve[:4]
 
 
 @needs_blender
