@@ -232,5 +232,5 @@ def test_robot_without_a_mapping_lists_the_missing_targets(key_weights, tmp_path
 
 def test_rig_is_required_for_meshes(key_weights, tmp_path, capsys):
     weights_csv = save_weights_csv(key_weights, tmp_path / "weights.csv")
-    assert main(["retarget", str(weights_csv), "-o", str(tmp_path / "x.glb")]) == 1
+    assert main(["retarget", str(weights_csv), "-o", str(tmp_path / "x.glb")]) == 2  # a usage error
     assert "--rig is required" in capsys.readouterr().err

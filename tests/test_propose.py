@@ -306,7 +306,7 @@ def test_propose_command_mapping_onto_an_obj_rig(head, mediapipe_keys, tmp_path,
 @pytest.mark.parametrize("extra, message", [
     (["-o", "map.json"], "a mapping needs --rig"),
     (["-o", "out.fbx"], "expected MAP.json"),
-    (["-o", "out.glb", "--falloff", "0"], "--falloff must be > 0"),
+    (["-o", "out.glb", "--falloff", "0"], "--falloff: must be > 0"),
 ])
 def test_propose_command_errors(mediapipe_keys, tmp_path, capsys, extra, message):
     from keyshape.io.keys_json import save_keys
@@ -314,7 +314,11 @@ def test_propose_command_errors(mediapipe_keys, tmp_path, capsys, extra, message
     keys_json = save_keys(mediapipe_keys, tmp_path / "keys.json")
     args = ["propose", str(keys_json)] + [str(tmp_path / a) if a.endswith((".json", ".fbx", ".glb")) else a
                                           for a in extra]
-    assert main(args) == 1
+    try:
+        code = main(args)
+    except SystemExit as exc:  # argparse's own usage errors
+        code = exc.code
+    assert code == 2  # usage errors (issue 17)
     assert message in capsys.readouterr().err
 
 

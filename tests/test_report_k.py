@@ -81,7 +81,7 @@ def test_usage_errors_exit_2(track_file, tmp_path, capsys, argv, message):
 
 
 def test_a_neutral_frame_out_of_range_is_one_clear_error(track_file, tmp_path, capsys):
-    assert main(["report-k", str(track_file), "-o", str(tmp_path / "k"), "--neutral", "999"]) == 1
+    assert main(["report-k", str(track_file), "-o", str(tmp_path / "k"), "--neutral", "999"]) == 2  # usage
     assert "--neutral must be a frame in 0..79; got 999" in capsys.readouterr().err
     assert not (tmp_path / "k").exists()
 

@@ -16,7 +16,7 @@ from ..defaults import (
     MAX_ERROR,
     MAX_KEYS,
 )
-from ..exceptions import InputError
+from ..exceptions import UsageError
 from ._argtypes import bound, non_negative, positive, regions, whole
 
 
@@ -147,9 +147,9 @@ def _one_euro(text: str | None) -> dict | None:
     try:
         min_cutoff, beta = (float(v) for v in text.split(","))
     except ValueError:
-        raise InputError(f"--one-euro expects MINCUT,BETA such as 1.0,0.05; got {text!r}") from None
+        raise UsageError(f"--one-euro expects MINCUT,BETA such as 1.0,0.05; got {text!r}") from None
     if min_cutoff <= 0 or beta < 0:
-        raise InputError(f"--one-euro needs MINCUT > 0 and BETA >= 0; got {text!r}")
+        raise UsageError(f"--one-euro needs MINCUT > 0 and BETA >= 0; got {text!r}")
     return {"min_cutoff": min_cutoff, "beta": beta}
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..exceptions import InputError
+from ..exceptions import UsageError
 from ._argtypes import positive
 from ._options import add_correspondence_option, add_normalize_option, add_rig_options, mesh_choice, shell_command
 
@@ -52,7 +52,7 @@ def run(args) -> None:
     keys = load_keys(args.keys)
     route = _route(args.output)
     if route == "mapping" and args.rig is None:
-        raise InputError("a mapping needs --rig: a rig with blendshapes of its own")
+        raise UsageError("a mapping needs --rig: a rig with blendshapes of its own")
     character, source = _character(args)
     colours = None
     if source is not None and args.correspondence is None:  # the character as it looks, for the render
@@ -71,7 +71,7 @@ def _route(output: Path) -> str:
         return "mapping"
     if suffix in (".glb", "") or output.is_dir():
         return "transfer"
-    raise InputError(f"-o {output}: expected MAP.json (mapping), a .glb or a folder (new targets)")
+    raise UsageError(f"-o {output}: expected MAP.json (mapping), a .glb or a folder (new targets)")
 
 
 def _character(args):
