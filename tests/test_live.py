@@ -352,6 +352,42 @@ def test_sigterm_stops_cleanly_and_keeps_the_recording(demo_clip, clip_keys, tmp
     assert read_glb_animation(folder / "animation.glb").weights.shape[0] == recorded.n_frames
 
 
+@pytest.mark.slow
+def test_calibrate_then_live_and_the_neutral_on_a_signal(demo_clip, tmp_path):
+    """--calibrate: the first seconds become the key set (recorded with the take); SIGUSR1
+    re-captures the neutral mid-session."""
+    from keyshape.io import load_keys, load_track
+
+    proc = _live(demo_clip, "--calibrate", "3", "--record", tmp_path / "rec", "--duration", "6",
+                 "--smoothing", "none")
+    lines = [proc.stdout.readline() for _ in range(3)]
+    assert lines[1].startswith("calibrating:") and lines[2].startswith("calibrated on "), lines
+    time.sleep(2)
+    proc.send_signal(signal.SIGUSR1)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "neutral re-captured 1x" in out, out
+    keys = load_keys(tmp_path / "rec" / "keys.json")
+    assert set(keys.takes) == {"calibration"} and keys.n_keys >= 4
+    track = load_track(tmp_path / "rec" / "track.npz")
+    calibration = int(lines[2].split()[2])  # "calibrated on N frames"
+    assert track.valid[:calibration].all() and track.valid.sum() > calibration  # both phases recorded
+
+
+def test_a_stream_source_drops_what_it_cannot_use(tmp_path):
+    """An unpaced live source (FFmpeg's lavfi test pattern, faster than real time): the loop keeps up
+    by dropping, the latency of what it takes stays small; no face at all is not an error."""
+    perf = make_performance(n_frames=10, n_landmarks=478, random_state=2)
+    keys = _synthetic_keys(perf)
+    source = open_source("testsrc=size=160x120:rate=30", input_format="lavfi")
+    summary = run_live(source, lambda k: Session([Recorder(tmp_path / "rec", k, fps=30, image_size=(160, 120))]),
+                       keys=keys, duration=1.0, say=lambda _: None)
+    assert summary.error is None and summary.processed > 10 and summary.faces == 0
+    assert summary.dropped > summary.processed and np.percentile(summary.latency, 50) < 0.05
+    with np.load(tmp_path / "rec" / "track.npz") as recorded:  # kept, though with no face it is no take
+        assert len(recorded["points"]) >= summary.processed and np.isnan(recorded["points"]).all()
+
+
 def test_a_source_that_fails_is_reported_and_the_recording_kept(grey_clip, tmp_path, monkeypatch):
     """A camera unplugged mid-session: one clear reason, outputs closed, the recording written."""
     from keyshape.live import FrameSource

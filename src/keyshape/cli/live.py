@@ -82,7 +82,8 @@ def add_arguments(p) -> None:
     out.add_argument("--record", type=Path, default=None, metavar="DIR",
                      help="write the take to DIR at the end: track.npz, keys.json, weights.csv, animation.glb")
     p.add_argument("--smoothing", type=_smoothing, default=None, metavar="MINCUT,BETA",
-                   help="One Euro filter on the weights (default 3,0.3: at most 53 ms of lag, 0.7 frames measured), or 'none'")
+                   help="One Euro filter on the weights (default 3,0.3: at most 53 ms of lag, 0.7 frames "
+                        "measured), or 'none'")
     p.add_argument("--max", type=float, default=DEFAULT_UPPER, metavar="U", help="upper bound of every weight")
     p.add_argument("--face", type=int, default=0, metavar="N", help="which person to follow (0 = the largest)")
     p.add_argument("--size", type=_size, default=None, metavar="WxH", help="camera: ask for this frame size")
@@ -103,7 +104,6 @@ def check(parser, args) -> None:
 def run(args) -> None:
     from ..io import load_keys
     from ..live import Controls, open_source, run_live
-
     from ._options import say
 
     keys = load_keys(args.keys) if args.keys is not None else None
@@ -210,4 +210,6 @@ def _describe(summary) -> str:
         ms = 1000 * summary.latency
         text += (f"; latency p50 {np.percentile(ms, 50):.1f} ms, p99 {np.percentile(ms, 99):.1f} ms "
                  f"(MediaPipe p50 {1000 * np.median(summary.detect):.1f} ms)")
+    if summary.neutral_captures:
+        text += f"; neutral re-captured {summary.neutral_captures}x"
     return text + f"; {summary.ended}"
