@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ._argtypes import positive
+from ._argtypes import bound, positive
 from ._options import add_correspondence_option
 
 DESCRIPTION = """\
@@ -84,7 +84,8 @@ def add_arguments(p) -> None:
     p.add_argument("--smoothing", type=_smoothing, default=None, metavar="MINCUT,BETA",
                    help="One Euro filter on the weights (default 3,0.3: at most 53 ms of lag, 0.7 frames "
                         "measured), or 'none'")
-    p.add_argument("--max", type=float, default=DEFAULT_UPPER, metavar="U", help="upper bound of every weight")
+    p.add_argument("--max", type=bound, default=DEFAULT_UPPER, metavar="U",
+                   help=f"upper bound of every weight (default {DEFAULT_UPPER:g}; 'none' lifts it)")
     p.add_argument("--face", type=int, default=0, metavar="N", help="which person to follow (0 = the largest)")
     p.add_argument("--size", type=_size, default=None, metavar="WxH", help="camera: ask for this frame size")
     p.add_argument("--camera-fps", type=positive, default=None, metavar="FPS",
@@ -99,6 +100,8 @@ def check(parser, args) -> None:
         parser.error("give at least one output: --vmc HOST:PORT, --livelink HOST:PORT, --view or --record DIR")
     if args.auto_targets and args.rig is None:
         parser.error("--auto-targets needs --rig")
+    if not args.auto_targets and (args.correspondence or args.front != "auto"):
+        parser.error("--correspondence and --front only apply with --auto-targets")
 
 
 def run(args) -> None:
@@ -137,7 +140,8 @@ def _session(args, source, keys):
     from ..live import LiveLinkSender, Recorder, Session, VmcSender, live_targets, parse_address
 
     targets = live_targets(keys, rig=args.rig, mapping=args.map, auto_targets=args.auto_targets,
-                           front=args.front, need_rig=bool(args.view or args.record))
+                           correspondence=args.correspondence, front=args.front,
+                           need_rig=bool(args.view or args.record))
     outputs = []
     if args.vmc:
         outputs.append(VmcSender(*parse_address(args.vmc, option="--vmc"), names=targets.names))

@@ -23,7 +23,8 @@ class LiveTargets:
 
 
 def live_targets(keys: KeyShapes, *, rig: Path | None = None, mapping: Path | None = None,
-                 auto_targets: bool = False, front: str = "auto", need_rig: bool = False) -> LiveTargets:
+                 auto_targets: bool = False, correspondence: Path | None = None, front: str = "auto",
+                 need_rig: bool = False) -> LiveTargets:
     """The targets for ``keys``, as ``keyshape run`` chooses them.
 
     * ``mapping`` alone: MAP.json's targets (no character of its own);
@@ -42,7 +43,7 @@ def live_targets(keys: KeyShapes, *, rig: Path | None = None, mapping: Path | No
     if auto_targets:
         from ..targets import auto_targets as propose
 
-        auto = propose(keys, rig, front=front)
+        auto = propose(keys, rig, correspondence=correspondence, front=front)
         return LiveTargets(tuple(auto.mapping.targets), auto.mapping, auto.rig, False)
     from ..io import load_rig
 
