@@ -200,6 +200,12 @@ def test_row03_variable_frame_rate_timing_is_kept(hostile, tmp_path):
     anim = solved.with_values(np.zeros((solved.n_frames, rig.n_targets)), rig.names)
     export(anim, tmp_path / "a.glb", rig=rig)
     assert read_glb_animation(tmp_path / "a.glb").times[24] == pytest.approx(2.4, abs=1e-5)
+    pxr = pytest.importorskip("pxr")
+    export(anim, tmp_path / "a.usda", rig=rig)
+    stage = pxr.Usd.Stage.Open(str(tmp_path / "a.usda"))
+    samples = next(p for p in stage.Traverse() if p.GetTypeName() == "SkelAnimation").GetAttribute(
+        "blendShapeWeights").GetTimeSamples()
+    assert samples[24] / stage.GetTimeCodesPerSecond() == pytest.approx(2.4, abs=1e-5)
 
 
 def test_row04_batch_resume_follows_video_and_options(hostile, tmp_path):

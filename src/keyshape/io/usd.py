@@ -11,8 +11,9 @@ checker live in :mod:`keyshape.io._usd_read`. A new file holds::
         <target>          BlendShape per target: offsets + pointIndices (moving points only)
 
 Stage metadata: ``metersPerUnit = 1`` (the rig is in metres), ``upAxis = "Y"`` (glTF's axes,
-so no conversion), ``timeCodesPerSecond = framesPerSecond = fps``, time code ``f`` = frame ``f``,
-``startTimeCode = 0``, ``endTimeCode = n_frames − 1``. Target names become blend-shape *channel*
+so no conversion), ``timeCodesPerSecond = framesPerSecond = fps``, time code ``f`` = frame ``f``
+(a variable frame rate take: frame ``f`` at ``weights.times[f] * fps``), ``startTimeCode = 0``,
+``endTimeCode = n_frames − 1``. Target names become blend-shape *channel*
 names as they are (tokens); the BlendShape prims get valid identifiers made from them.
 
 References
@@ -122,7 +123,15 @@ def _set_timing(stage, weights: Weights) -> None:
     stage.SetTimeCodesPerSecond(weights.fps)
     stage.SetFramesPerSecond(weights.fps)
     stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(max(weights.n_frames - 1, 0))
+    stage.SetEndTimeCode(float(max(_time_codes(weights)[-1], 0)) if weights.n_frames else 0)
+
+
+def _time_codes(weights: Weights) -> np.ndarray:
+    """(n_frames,) float: each frame's time code, its time from the first frame x fps (whole
+    numbers for a constant rate; a variable frame rate take keeps its own timing)."""
+    codes = weights.times * weights.fps
+    whole = np.round(codes)
+    return np.where(np.abs(codes - whole) < 1e-6, whole, codes)
 
 
 def _skeleton(stage):
@@ -189,13 +198,14 @@ def _animation(stage, skeleton, rig: Rig, weights: Weights, quats: np.ndarray | 
     animation.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1.0)]))
     values = np.nan_to_num(weights.values, nan=0.0).astype(np.float32)
     channel = animation.CreateBlendShapeWeightsAttr()
-    for frame, row in enumerate(values):
-        channel.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(frame))
+    codes = _time_codes(weights)
+    for code, row in zip(codes, values):
+        channel.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(float(code)))
     rotations = animation.CreateRotationsAttr()
     if quats is None:
         rotations.Set(Vt.QuatfArray([Gf.Quatf(1.0)]))
-    for frame, (x, y, z, w) in enumerate([] if quats is None else quats):
-        rotations.Set(Vt.QuatfArray([Gf.Quatf(float(w), float(x), float(y), float(z))]), Usd.TimeCode(frame))
+    for code, (x, y, z, w) in zip(codes, [] if quats is None else quats):
+        rotations.Set(Vt.QuatfArray([Gf.Quatf(float(w), float(x), float(y), float(z))]), Usd.TimeCode(float(code)))
     UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([animation.GetPath()])
 
 
@@ -306,13 +316,14 @@ def _add_animation(stage, skeleton, channels, weights: Weights, world, source) -
                for n in channels]
     values = np.nan_to_num(np.stack(columns, axis=1), nan=0.0).astype(np.float32)
     attribute = animation.CreateBlendShapeWeightsAttr()
-    for frame, row in enumerate(values):
-        attribute.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(frame))
-    _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, world, source)
+    codes = _time_codes(weights)
+    for code, row in zip(codes, values):
+        attribute.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(float(code)))
+    _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, world, source, codes)
     UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([animation.GetPath()])
 
 
-def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, world, source) -> None:
+def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, world, source, codes) -> None:
     Gf, _, _, Usd, _, _, _, Vt = _pxr()
     attribute = animation.CreateRotationsAttr()
     if world is None:
@@ -326,9 +337,9 @@ def _joint_rotations_over_time(animation, skeleton, joints, rest, rotations, wor
         return
     local = _head_local(skeleton, joints, rest, head, world)
     quats = list(rotations)
-    for frame, (x, y, z, w) in enumerate(local):
+    for code, (x, y, z, w) in zip(codes, local):
         quats[head] = Gf.Quatf(float(w), float(x), float(y), float(z))
-        attribute.Set(Vt.QuatfArray(quats), Usd.TimeCode(frame))
+        attribute.Set(Vt.QuatfArray(quats), Usd.TimeCode(float(code)))
 
 
 def _head_joint(joints) -> int | None:
