@@ -32,6 +32,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -127,6 +128,10 @@ def write_blender(path, animation: Weights, *, rig: Rig | None = None, source=No
     with tempfile.TemporaryDirectory(prefix="keyshape-blender-") as folder:
         work = Path(folder)
         head_name, eye_names = _scene(work / "scene.glb", animation, rig, source, head, eyes is not None)
+        if poses is not None and head_name is None:
+            warnings.warn(f"{str(source)!r}: no head node found (no joint or node named like 'head' above the "
+                          "face meshes): the head rotation is not written; name the node to turn", UserWarning,
+                          stacklevel=2)
         arrays = _arrays(animation, poses if head_name else None, eyes if eye_names else None)
         np.savez(work / "job.npz", **arrays)
         with atomic_path(path) as tmp:
