@@ -356,7 +356,34 @@ def _shared_key_set(videos: list[Path], outdir: Path, options: RunOptions, runne
                              take=[v.name for v in usable], upper=options.upper, max_error=options.max_error,
                              mirror=options.mirror)
         save_keys(keys, keys_path)
+    _warn_out_of_reach(keys_path, {v: tracks[v] for v in videos if v not in failed}, options)
     return replace(options, keys=keys_path), tracks, failed
+
+
+def _warn_out_of_reach(keys_path: Path, tracks: dict[Path, Path], options: RunOptions) -> None:
+    """Warn about every take the shared key set does not reach within the error target (a take
+    added after the key set was made, or one unlike the others)."""
+    import shlex
+    import warnings
+
+    from ..exceptions import InputWarning
+    from ..io.keys_json import load_keys
+    from ..io.track import load_track
+    from ._pipeline import fit_errors
+
+    if not tracks:
+        return
+    keys = load_keys(keys_path)
+    for video, path in tracks.items():
+        errors, unit = fit_errors(load_track(path), keys, upper=options.upper)
+        beyond = {r: e for r, e in errors.items() if e > options.max_error}
+        if beyond:
+            worst = ", ".join(f"{r} {e:.2f}" for r, e in beyond.items())
+            track = shlex.quote(str(keys_path.parent / video.stem / "track.npz"))
+            warnings.warn(f"{video.name}: outside the shared key set's reach (RMS error {worst} {unit}, target "
+                          f"{options.max_error:g}); `keyshape coverage {track} --keys {shlex.quote(str(keys_path))}"
+                          f" -o DIR` shows where, `keyshape keys {track} --extend ... -o KEYS.json` adds keys for it",
+                          InputWarning, stacklevel=2)
 
 
 def _skipped_row(video: Path, outdir: Path) -> BatchRow:
