@@ -162,6 +162,9 @@ def test_row02_start_is_recorded_and_used(hostile, tmp_path):
 
     page = load_take(hostile["run"]).as_json()  # the viewer seeks the video to these times
     assert page["video_times"][0] == pytest.approx(track.time[0], abs=1e-6) and len(page["video_times"]) == 36
+    arrays = _track_arrays(hostile["track"])  # a track file from before frame_index and time still loads
+    old = load_track(_save_track(tmp_path / "old.npz", points=arrays["points"], fps=arrays["fps"]))
+    assert old.frame_index.tolist() == list(range(36)) and old.time[1] == pytest.approx(1 / float(arrays["fps"]))
 
 
 def _write_vfr(path: Path, frames: np.ndarray, ms: list[int]) -> Path:
