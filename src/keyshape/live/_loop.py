@@ -164,71 +164,89 @@ def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys
     """
     if keys is None and not calibrate:
         raise InputError("live needs a key set (--keys) or a calibration (--calibrate SECONDS)")
-    controls = controls or Controls()
-    summary = LiveSummary(source.name, source.fps)
-    latency, detect = [], []
-    outputs: list[Output] = []
-    start = time.perf_counter()
+    run = _Run(source, controls or Controls(), LiveSummary(source.name, source.fps))
     previous_cores = pin_thread(cores[0]) if cores else None  # MediaPipe's threads inherit it
     try:
         with MediaPipeTracker(tracker_options or TrackerOptions()) as mediapipe:
             tracker = _Tracker(mediapipe, face)
             _warm_up(tracker, source.size)
-            calibrating = keys is None
-            if calibrating:
-                keys, seen = _calibrate(source.start(cpu=cores[1] if cores else None), tracker,
-                                        float(calibrate), source.fps, say)
+            decoding = cores[1] if cores else None
+            seen = None
+            if keys is None:
+                keys, seen = _calibrate(source.start(cpu=decoding), tracker, float(calibrate), source.fps, say)
             _warm_up_solver(keys)
-            summary.keys = keys
+            run.summary.keys = keys
             session = setup(keys)
-            outputs = session.outputs
-            if calibrating:
-                _replay_calibration(seen, outputs, keys)
-                del seen
+            run.outputs = session.outputs
+            if seen is not None:
+                _replay_calibration(seen, run.outputs, keys)
+                source.mailbox.get(timeout=0)  # stale: it arrived while the session was set up
+            mailbox = source.mailbox if seen is not None else source.start(cpu=decoding)
+            del seen
             solver = LiveSolver(keys, fps=source.fps, upper=upper, smoothing=smoothing)
-            mailbox = source.mailbox if calibrating else source.start(cpu=cores[1] if cores else None)
-            if calibrating:
-                mailbox.get(timeout=0)  # stale: it arrived while the session was set up
-            base_delivered, base_dropped = mailbox.delivered, mailbox.dropped
-            start = time.perf_counter()
-            deadline = start + duration if duration else float("inf")
-            while not controls.stop.is_set() and time.perf_counter() < deadline:
-                frame = mailbox.get(0.1)
-                if frame is None:
-                    if mailbox.closed:
-                        break
-                    continue
-                if controls.neutral.is_set():
-                    controls.neutral.clear()
-                    solver.recapture_neutral()
-                began = time.perf_counter()
-                chosen = tracker(frame)
-                detect.append(time.perf_counter() - began)
-                solve = solver.step(chosen.points if chosen is not None else None)
-                names = session.mapping.targets if session.mapping is not None else keys.names
-                live = LiveFrame(frame.index, frame.time, frame.arrival, tuple(names),
-                                 _values(solve, session.mapping, keys.names, source.fps), solve.keys,
-                                 solve.head, solve.eyes, solve.face, frame.rgb, chosen)
-                for output in outputs:
-                    output.send(live)
-                latency.append(time.perf_counter() - frame.arrival)
-                summary.faces += solve.face
-            summary.ended = mailbox.error or ("end of the video" if mailbox.closed else "stopped")
-            summary.error = mailbox.error
-            summary.delivered = mailbox.delivered - base_delivered
-            summary.dropped = mailbox.dropped - base_dropped
-            summary.neutral_captures = solver.neutral_captures
+            run.loop(mailbox, tracker, solver, session, duration)
     except (KeyboardInterrupt, Terminated) as stop:
-        summary.ended = "stopped (Ctrl-C)" if isinstance(stop, KeyboardInterrupt) else "stopped (SIGTERM)"
-        summary.delivered = source.mailbox.delivered
-        summary.dropped = source.mailbox.dropped
+        run.summary.ended = "stopped (Ctrl-C)" if isinstance(stop, KeyboardInterrupt) else "stopped (SIGTERM)"
     finally:
         if previous_cores is not None:
             os.sched_setaffinity(0, previous_cores)
-        source.stop()
-        summary.seconds = time.perf_counter() - start
-        summary.processed = len(latency)
-        summary.latency, summary.detect = np.array(latency), np.array(detect)
-        for output in outputs:
+        run.finish()
+    return run.summary
+
+
+class _Run:
+    """One session's state: the outputs, the counts and the per-frame timings."""
+
+    def __init__(self, source: FrameSource, controls: Controls, summary: LiveSummary):
+        self.source, self.controls, self.summary = source, controls, summary
+        self.outputs: list[Output] = []
+        self.latency, self.detect = [], []
+        self.base = (0, 0)  # the mailbox's (delivered, dropped) when the session started
+        self.solver: LiveSolver | None = None
+        self.start = time.perf_counter()
+
+    def loop(self, mailbox: Mailbox, tracker: _Tracker, solver: LiveSolver, session: Session,
+             duration: float | None) -> None:
+        self.solver, self.base = solver, (mailbox.delivered, mailbox.dropped)
+        self.start = time.perf_counter()
+        deadline = self.start + duration if duration else float("inf")
+        while not self.controls.stop.is_set() and time.perf_counter() < deadline:
+            frame = mailbox.get(0.1)
+            if frame is not None:
+                self.step(frame, tracker, solver, session)
+            elif mailbox.closed:
+                break
+        ended = "the stream ended" if self.source.kind != "file" else "end of the video"
+        self.summary.ended = mailbox.error or (ended if mailbox.closed else "stopped")
+        self.summary.error = mailbox.error
+
+    def step(self, frame, tracker: _Tracker, solver: LiveSolver, session: Session) -> None:
+        """Track, solve and send one frame."""
+        if self.controls.neutral.is_set():
+            self.controls.neutral.clear()
+            solver.recapture_neutral()
+        began = time.perf_counter()
+        chosen = tracker(frame)
+        self.detect.append(time.perf_counter() - began)
+        solve = solver.step(chosen.points if chosen is not None else None)
+        keys = solver.keys
+        names = session.mapping.targets if session.mapping is not None else keys.names
+        live = LiveFrame(frame.index, frame.time, frame.arrival, tuple(names),
+                         _values(solve, session.mapping, keys.names, self.source.fps), solve.keys,
+                         solve.head, solve.eyes, solve.face, frame.rgb, chosen)
+        for output in self.outputs:
+            output.send(live)
+        self.latency.append(time.perf_counter() - frame.arrival)
+        self.summary.faces += solve.face
+
+    def finish(self) -> None:
+        """Stop the source, close every output (a recording is written now), fill in the summary."""
+        self.source.stop()
+        summary, mailbox = self.summary, self.source.mailbox
+        summary.seconds = time.perf_counter() - self.start
+        summary.delivered, summary.dropped = mailbox.delivered - self.base[0], mailbox.dropped - self.base[1]
+        summary.processed = len(self.latency)
+        summary.latency, summary.detect = np.array(self.latency), np.array(self.detect)
+        summary.neutral_captures = self.solver.neutral_captures if self.solver is not None else 0
+        for output in self.outputs:
             output.close()
-    return summary
