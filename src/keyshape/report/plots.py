@@ -58,7 +58,8 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
     """The "sculpt list": the neutral frame and every key frame, cropped around the face.
 
     Each tile shows the frame with its landmarks, the key's region highlighted in the
-    region's colour, titled with the key name and source frame. Keys from another take
+    region's colour, titled with the key name and source frame; a mirrored key shows its
+    source's frame flipped left to right (what the mirrored key is). Keys from another take
     (``keys.takes[k]`` not in ``("", take)``) and frames without a picture are drawn as the
     key shape's landmarks alone.
 
@@ -93,6 +94,9 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
         _tile(ax, keys, key, track.points[frame] if own else None, images.get(frame) if own else None,
               palette)
         title = f"{name} · frame {frame}" if own else f"{name} · {source or 'take'} #{frame}"
+        if key is not None and keys.mirror_of[key]:  # drawn as it is: the source frame, flipped
+            ax.set_xlim(*ax.get_xlim()[::-1])
+            title = f"{name} · mirrored {frame}"
         ax.set_title(title, fontsize=9, color=_rgb(palette[region]) if region else "black")
     for ax in axes[len(tiles):]:
         ax.set_axis_off()
