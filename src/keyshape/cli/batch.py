@@ -65,6 +65,9 @@ def add_arguments(p) -> None:
                    help="CPUs of the local Ray instance (default: every core)")
     p.add_argument("--no-preview", action="store_true",
                    help="skip each take's preview video (the slowest extra)")
+    p.add_argument("--force", action="store_true",
+                   help="rerun every take (default: a take is skipped when its outputs are complete and "
+                        "its manifest OUTDIR/<take>/batch.json matches its video and these options)")
     from .run import add_format_option
 
     add_format_option(p)
