@@ -463,7 +463,11 @@ def test_viewer_shows_live_weights_while_a_clip_plays(browser, demo_clip, clip_k
         values = np.array([[s[1][n] for n in names] for s in samples])
         assert np.ptp(values, axis=0).max() > 0.05  # the weights change while it plays
         assert len({tuple(s[2]) for s in samples}) > 1  # and the panel shows them
-        assert page.evaluate("document.getElementById('camera').naturalWidth") == 640  # the camera picture
+        camera = page.evaluate("""() => { const c = document.getElementById('camera');
+            const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+            let sum = 0; for (let i = 0; i < d.length; i += 4) sum += d[i];
+            return [c.width, c.height, sum / (d.length / 4)]; }""")
+        assert camera[:2] == [640, 360] and camera[2] > 20, camera  # the camera picture, not blank
         assert page.evaluate("keyshape.webgl") and errors == []
         page.close()
     finally:

@@ -1,7 +1,8 @@
 // Live mode (keyshape live --view): the camera and the character as the session solves them.
 //
 // The page's WebSocket (/live) brings a JSON message per solved frame ({frame, time, face,
-// names, weights, head}) and, a few times a second, the camera picture as a JPEG. The
+// names, weights, head}) and, a few times a second, the camera picture as a JPEG (drawn on a
+// canvas, which keeps the last picture until the next is decoded). The
 // character's morph targets are set by name from the weights, its head node from `head`.
 
 import { Character } from './character.js';
@@ -34,7 +35,8 @@ export async function runLive(take, hook, $, notice) {
     state.closed = true;
     notice('The live session has ended.');
   });
-  let shown = null;
+  const picture = camera.getContext('2d');
+  let drawing = false;
   socket.addEventListener('message', (event) => {
     if (typeof event.data === 'string') {
       const message = JSON.parse(event.data);
@@ -45,11 +47,16 @@ export async function runLive(take, hook, $, notice) {
       state.frames += 1;
       $('frame').textContent = `frame ${message.frame}`;
       $('time').textContent = `${message.time.toFixed(3)} s${message.face ? '' : ' (no face)'}`;
-    } else {
-      const url = URL.createObjectURL(event.data);
-      camera.onload = () => { if (shown) URL.revokeObjectURL(shown); shown = url; };
-      camera.src = url;
-      state.images += 1;
+    } else if (!drawing) { // a JPEG of the camera; one decoded at a time, the newest wins
+      drawing = true;
+      createImageBitmap(event.data).then((bitmap) => {
+        if (camera.width !== bitmap.width || camera.height !== bitmap.height) {
+          [camera.width, camera.height] = [bitmap.width, bitmap.height];
+        }
+        picture.drawImage(bitmap, 0, 0);
+        bitmap.close();
+        state.images += 1;
+      }).catch(() => {}).finally(() => { drawing = false; });
     }
   });
 
