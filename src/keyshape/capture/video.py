@@ -16,7 +16,7 @@ import numpy as np
 
 from ..exceptions import InputError
 
-__all__ = ["VideoInfo", "probe", "iter_frames", "prefetch", "IMAGE_SUFFIXES"]
+__all__ = ["VideoInfo", "probe", "iter_frames", "prefetch", "IMAGE_SUFFIXES", "open_stream", "decode_stream"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 FOLDER_FPS = 30.0
@@ -186,3 +186,37 @@ def prefetch(frames: Iterable, *, depth: int = 8) -> Iterator:
                 items.get_nowait()
             except queue.Empty:
                 worker.join(timeout=0.05)
+
+
+def open_stream(source: str, *, format: str | None = None, options: dict | None = None,
+                what: str = "stream", timeout: float = 10.0):
+    """A camera or stream opened for live decoding (``keyshape live``).
+
+    Parameters
+    ----------
+    source : device (``/dev/video0``, ``0`` with avfoundation, ``video=NAME``) or URL
+    format : FFmpeg input format (``v4l2``, ``avfoundation``, ``dshow``, ``lavfi``, ...) or None
+    options : input options such as ``{"video_size": "640x360", "framerate": "30"}``
+    what : what ``source`` is, for the error message
+
+    Returns
+    -------
+    (container, fps, (width, height)) : fps is 0 when the input does not say
+    """
+    import av
+
+    try:
+        container = av.open(source, format=format, options=options or None, timeout=timeout)
+    except (av.error.FFmpegError, OSError, ValueError) as exc:
+        raise InputError(f"{source}: cannot open this {what} ({exc})") from None
+    if not container.streams.video:
+        container.close()
+        raise InputError(f"{source}: this {what} has no video")
+    stream = container.streams.video[0]
+    return container, float(stream.average_rate or stream.guessed_rate or 0), (stream.width, stream.height)
+
+
+def decode_stream(container) -> Iterator[tuple[float | None, np.ndarray]]:
+    """``(media seconds or None, rgb)`` of every frame of an :func:`open_stream` container, as decoded."""
+    for frame in container.decode(container.streams.video[0]):
+        yield (float(frame.time) if frame.time is not None else None), frame.to_ndarray(format="rgb24")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture import iter_frames, probe
+from ..capture.video import decode_stream, iter_frames, open_stream, probe
 from ..exceptions import InputError
 
 __all__ = ["SourceFrame", "Mailbox", "FrameSource", "open_source", "camera_input", "pin_thread"]
@@ -138,21 +138,13 @@ class FrameSource:
         self._rate = fps if self.kind == "file" else None  # a file played at another rate
         self.fps, self.size = self._probe(fps)
 
-    def _open(self):
-        import av
-
-        try:
-            return av.open(self.device, format=self.format, options=self._options or None, timeout=10)
-        except (av.error.FFmpegError, OSError, ValueError) as exc:
-            raise InputError(f"{self.spec}: cannot open this {self.kind} ({exc})") from None
-
     def _probe(self, fps: float | None) -> tuple[float, tuple[int, int]]:
         if self.kind == "file":
             info = probe(self.device, fps=fps)
             return info.fps, (info.width, info.height)
-        self._container = self._open()
-        stream = self._container.streams.video[0]
-        return float(fps or stream.average_rate or stream.guessed_rate or 30), (stream.width, stream.height)
+        self._container, rate, size = open_stream(self.device, format=self.format, options=self._options,
+                                                  what=self.kind)
+        return float(fps or rate or 30), size
 
     def start(self, *, cpu: int | None = None) -> Mailbox:
         """Start delivering frames (in a thread, on core ``cpu`` if given); returns the mailbox."""
@@ -195,16 +187,13 @@ class FrameSource:
         self.mailbox.close()
 
     def _read_live(self) -> None:
-        container = self._container
-        stream = container.streams.video[0]
         start = None
-        for index, frame in enumerate(container.decode(stream)):
+        for index, (media, rgb) in enumerate(decode_stream(self._container)):
             if self._stop.is_set():
                 break
             arrival = time.perf_counter()
             start = arrival if start is None else start
-            media = float(frame.time) if frame.time is not None else arrival - start
-            self.mailbox.put(SourceFrame(index, media, arrival, frame.to_ndarray(format="rgb24")))
+            self.mailbox.put(SourceFrame(index, arrival - start if media is None else media, arrival, rgb))
         if not self._stop.is_set() and self.kind == "camera":
             raise OSError("end of the camera's stream (unplugged?)")
         self.mailbox.close()
