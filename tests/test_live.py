@@ -158,7 +158,7 @@ def test_livelink_packet_names_order_and_values():
     assert struct.unpack_from(">i", data, 1) == (5,) and data[5:10] == b"dev-1"
     assert struct.unpack_from(">i", data, 10) == (6,) and data[14:20] == b"webcam"
     frame, subframe, num, den, count = struct.unpack_from(">ifiiB", data, 20)
-    assert (num, den, count) == (30000, 1001, 61) and frame == 299 and 0.7 < subframe < 0.71
+    assert (num, den, count) == (30000, 1001, 61) and frame == 299 and 0.7 < subframe < 0.71  # 10 s = 299.7
     assert len(data) == 20 + 17 + 4 * 61
     packet = decode_packet(data)
     assert (packet.version, packet.device_id, packet.subject, packet.frame) == (6, "dev-1", "webcam", 299)
@@ -321,6 +321,51 @@ def test_live_vmc_on_the_real_clip(demo_clip, real_track, clip_keys, tmp_path):
           f"min {np.min(corr):.3f}")
     assert moving.sum() >= 5 and np.mean(corr) >= 0.9
 
+
+
+@pytest.mark.slow
+def test_live_link_from_the_command_line(demo_clip, clip_keys, tmp_path):
+    """`--map` onto ARKit names and `--livelink`: Unreal's packets arrive, one per frame, the mapped
+    key's weight in JawOpen (through the map's gain), the head turning in the rotation slots."""
+    from keyshape.io import load_keys
+
+    keys = load_keys(clip_keys)
+    lower = next(k for k in keys.names if k.startswith("lower"))
+    (tmp_path / "map.json").write_text(json.dumps({lower: {"jawOpen": 0.5}, keys.names[0]: {"browInnerUp": 1.0}}))
+    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    receiver.bind(("127.0.0.1", 0))
+    receiver.settimeout(0.5)
+    received = []
+
+    def listen():
+        while True:
+            try:
+                received.append(receiver.recvfrom(4096)[0])
+            except TimeoutError:
+                if proc.poll() is not None:
+                    return
+            except OSError:
+                return
+
+    proc = _live(demo_clip, "--keys", clip_keys, "--map", tmp_path / "map.json", "--duration", "4",
+                 "--livelink", f"127.0.0.1:{receiver.getsockname()[1]}", "--subject", "actor")
+    listener = threading.Thread(target=listen, daemon=True)
+    listener.start()
+    out, err = proc.communicate(timeout=60)
+    listener.join(5)
+    receiver.close()
+    assert proc.returncode == 0, err
+    packets = [decode_packet(data) for data in received]
+    assert len(packets) >= 0.9 * 4 * 23.976, (len(packets), out)
+    assert {(p.version, p.subject, p.rate, len(p.values)) for p in packets} == {(6, "actor", (24000, 1001), 61)}
+    frames = [p.frame for p in packets]
+    assert frames == sorted(frames) and len(set(frames)) == len(frames)
+    values = np.array([p.values for p in packets])
+    jaw, brow = PACKET_NAMES.index("JawOpen"), PACKET_NAMES.index("BrowInnerUp")
+    assert ((values[:, :52] >= 0) & (values[:, :52] <= 1)).all() and values[:, jaw].max() <= 0.5 + 1e-6
+    assert np.ptp(values[:, jaw]) > 0.01 or np.ptp(values[:, brow]) > 0.01  # the face moves
+    unmapped = [i for i in range(52) if i not in (jaw, brow)]
+    assert (values[:, unmapped] == 0).all() and np.ptp(values[:, 52]) > 0.001  # head yaw turns
 
 
 @pytest.mark.slow

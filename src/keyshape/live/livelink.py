@@ -120,11 +120,20 @@ def encode_packet(values: np.ndarray, *, time: float, rate: tuple[int, int], sub
     values = np.asarray(values, dtype=float)
     if values.shape != (_N,):
         raise InputError(f"values must have shape ({_N},); got {values.shape}")
-    position = float(time) * rate[0] / rate[1]
-    frame = int(np.floor(position))
+    frame, subframe = _frame_time(float(time) * rate[0] / rate[1])
     head = struct.pack(">B", PACKET_VERSION) + _string(device_id) + _string(subject)
-    timing = struct.pack(">ifiiB", frame, position - frame, rate[0], rate[1], _N)
+    timing = struct.pack(">ifiiB", frame, subframe, rate[0], rate[1], _N)
     return head + timing + struct.pack(f">{_N}f", *values.tolist())
+
+
+def _frame_time(position: float) -> tuple[int, float]:
+    """Frame number and sub-frame of ``position`` frames; within 0.02 of a whole frame (media times
+    come in whole milliseconds, 0.012 frames at 24 fps) it is that frame, sub-frame 0."""
+    nearest = round(position)
+    if abs(position - nearest) < 0.02:
+        return int(nearest), 0.0
+    frame = int(np.floor(position))
+    return frame, position - frame
 
 
 def decode_packet(data: bytes) -> LiveLinkPacket:
