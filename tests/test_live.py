@@ -208,10 +208,10 @@ def test_a_file_plays_at_its_own_rate_and_a_slow_reader_drops(grey_clip):
             time.sleep(0.1)  # a reader at 10 frames/s: 2-3 frames in 4 are dropped, none queued
     elapsed = time.perf_counter() - began
     source.stop()
-    assert 0.9 < elapsed < 1.6, elapsed  # 25 frames at 25 fps: about a second, not "as fast as it decodes"
+    assert 0.9 < elapsed < 2.0, elapsed  # 25 frames at 25 fps: about a second, not "as fast as it decodes"
     assert box.delivered == 25 and box.dropped == 25 - len(got) and box.dropped >= 12
     lags = [taken - frame.arrival for frame, taken in got]
-    assert max(lags) < 0.05, lags  # what is taken is fresh: the lag does not grow
+    assert max(lags) < 0.1, lags  # what is taken is fresh (queued, the last would be ~1 s old)
     assert [f.index for f, _ in got] == sorted(f.index for f, _ in got)
 
 
