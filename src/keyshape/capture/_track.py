@@ -87,7 +87,8 @@ def _nan_frame(index: int = 0, ms: int = 0, n_seen: int = 0) -> _Frame:
 
 def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, start: int,
             end: int | None, fps: float | None, face: int, progress: bool,
-            one_euro: dict | None = None) -> Iterator[_Frame]:
+            one_euro: dict | None = None, follower: FaceFollower | None = None,
+            pts: np.ndarray | None = None) -> Iterator[_Frame]:
     from tqdm import tqdm
 
     from .filters import OneEuro
@@ -98,9 +99,9 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
         options = TrackerOptions(options.model_path, face + 2, options.min_detection_confidence,
                                  options.min_tracking_confidence, options.min_presence_confidence)
     total = (min(end, info.n_frames) if end is not None and info.n_frames else end or info.n_frames) - start
-    follower = FaceFollower(face)
+    follower = follower or FaceFollower(face)
     with MediaPipeTracker(options) as tracker:
-        source = prefetch(iter_frames(path, start=start, end=end, fps=fps))
+        source = prefetch(iter_frames(path, start=start, end=end, fps=fps, pts=pts))
         # disable=None: a bar only when stderr is a terminal, never in a log
         for index, (ms, rgb) in enumerate(tqdm(source, total=total if total > 0 else None, unit="frame",
                                                desc=f"track {path.name}", disable=None if progress else True,
@@ -173,7 +174,7 @@ class _Spool:
 
 
 def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
-           one_euro: dict | None = None) -> tuple[_Spool, VideoInfo]:
+           one_euro: dict | None = None, workers: int | None = 1) -> tuple[_Spool, VideoInfo]:
     _check_range(start, end)
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a finite number > 0; got {fps!r}")
@@ -182,16 +183,39 @@ def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
     if info.n_frames and start >= info.n_frames:
         raise InputError(f"{path}: start frame {start} is past its end (it has {info.n_frames} frames, "
                          f"0..{info.n_frames - 1})")
-    with _Spool(folder) as spool:
-        for frame in _frames(path, info, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, one_euro=one_euro):
-            spool.append(frame)
+    spool = None
+    if workers != 1:  # segments in parallel (None: too short to split)
+        from ._parallel import spool_parallel
+
+        spool = spool_parallel(path, info, _track_segment, _Spool, start=start, end=end, progress=progress,
+                               folder=folder, workers=workers, options=options, fps=fps, face=face,
+                               one_euro=one_euro)
+    if spool is None:
+        with _Spool(folder) as spool:
+            for frame in _frames(path, info, options=options, start=start, end=end, fps=fps, face=face,
+                                 progress=progress, one_euro=one_euro):
+                spool.append(frame)
     if spool.n_frames == 0:
         raise InputError(f"{path}: no frame from frame {start} on (the video ends before it)")
     _warn_if_truncated(path, info, start + spool.n_frames, end)
     if spool.n_faces == 0:
         raise NoFaceError(_no_face_message(path, spool, face))
     return spool, info
+
+
+def _track_segment(path: Path, info: VideoInfo, first: int, end: int, folder: Path, pts: np.ndarray | None,
+                   kwargs: dict, seed: dict | None = None) -> dict:
+    """Frames ``first <= i < end`` into a spool in ``folder`` (one segment of a parallel run,
+    :mod:`keyshape.capture._parallel`); ``seed``: the :class:`FaceFollower`'s state to start from.
+    Returns the spool's counters and clock."""
+    follower = FaceFollower(kwargs["face"])
+    vars(follower).update(seed or {})
+    with _Spool(folder) as spool:
+        for frame in _frames(path, info, start=first, end=end, progress=False, follower=follower, pts=pts,
+                             **kwargs):
+            spool.append(frame)
+    return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "most_seen": spool.most_seen,
+            "index": spool.index, "ms": spool.ms}
 
 
 def _no_face_message(path: Path, spool: _Spool, face: int) -> str:
@@ -213,7 +237,7 @@ def _warn_if_truncated(path: Path, info: VideoInfo, decoded: int, end: int | Non
 
 def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,
                 end: int | None = None, fps: float | None = None, face: int = 0,
-                one_euro: dict | None = None, progress: bool = True) -> Track:
+                one_euro: dict | None = None, progress: bool = True, workers: int | None = 1) -> Track:
     """Track one face in every frame of a video file or a folder of images.
 
     Parameters
@@ -227,6 +251,9 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
         (``{}`` for the defaults; see :class:`keyshape.capture.filters.OneEuro`) for live-like use.
         Offline, the default zero-lag smoothing of the solve is the better choice.
     progress : show a progress bar with frames/s and ETA on stderr
+    workers : processes tracking overlapping segments of the video in parallel, each with its
+        own landmarker (1, the default: this process only; None: one per core). Short inputs
+        use fewer. See :mod:`keyshape.capture._parallel`.
 
     Returns
     -------
@@ -239,7 +266,7 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
     """
     with tempfile.TemporaryDirectory(prefix="keyshape-track-") as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=Path(tmp), one_euro=one_euro)
+                             progress=progress, folder=Path(tmp), one_euro=one_euro, workers=workers)
         arrays = spool.arrays()
         clock = spool.clock()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
@@ -250,7 +277,7 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
 
 def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptions | None = None,
                   start: int = 0, end: int | None = None, fps: float | None = None, face: int = 0,
-                  one_euro: dict | None = None, progress: bool = True) -> dict:
+                  one_euro: dict | None = None, progress: bool = True, workers: int | None = 1) -> dict:
     """Track a video straight into a track file; memory use does not grow with its length.
 
     Same parameters as :func:`track_video`. Returns a summary dict: ``n_frames``,
@@ -262,7 +289,7 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
     spool_dir = output.parent if output.parent.exists() else None
     with tempfile.TemporaryDirectory(prefix="keyshape-track-", dir=spool_dir) as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=Path(tmp), one_euro=one_euro)
+                             progress=progress, folder=Path(tmp), one_euro=one_euro, workers=workers)
         arrays = spool.arrays()
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],

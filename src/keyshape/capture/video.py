@@ -100,49 +100,83 @@ def _rotate(rgb: np.ndarray, rotation: int) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(rgb, k=rotation // 90)) if rotation else rgb
 
 
-def _decode_video(path: Path, fps: float | None) -> Iterator[tuple[int, np.ndarray]]:
+def frame_pts(path: str | Path) -> np.ndarray | None:
+    """Presentation times of every frame of a video file, in stream units, sorted: ``(n_frames,) int``.
+
+    Read from the packets (nothing is decoded). None for image folders and for streams whose packets
+    do not all carry a time, which cannot be sought by frame number.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return None
+    with _open(path) as container:
+        pts = [packet.pts for packet in container.demux(container.streams.video[0]) if packet.size]
+    if not pts or any(p is None for p in pts):
+        return None
+    return np.sort(np.array(pts, dtype=np.int64))
+
+
+def _seek(container, stream, pts: np.ndarray | None, start: int) -> bool:
+    """Seek to the keyframe at or before frame ``start`` (with its times ``pts``); whether it did."""
+    if pts is None or start <= 0 or start >= len(pts):
+        return False
+    container.seek(int(pts[start]), stream=stream, backward=True, any_frame=False)
+    return True  # frame numbers come from the presentation times from here on
+
+
+def _decode_video(path: Path, fps: float | None, start: int = 0,
+                  pts: np.ndarray | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
     import av
 
     with _open(path) as container:
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"
         rate = float(fps or stream.average_rate or stream.guessed_rate or 30)
+        sought = _seek(container, stream, pts, start)
         try:
-            for index, frame in enumerate(container.decode(stream)):
+            for decoded, frame in enumerate(container.decode(stream)):
+                index = decoded
+                if sought:  # after a seek, a frame's number is the rank of its time
+                    index = int(np.searchsorted(pts, frame.pts)) if frame.pts is not None else -1
+                    if index < start:
+                        continue
                 if fps is None and frame.pts is not None and frame.time_base is not None:
                     ms = int(round(float(frame.pts * frame.time_base) * 1000))
                 else:
                     ms = int(round(index * 1000 / rate))
                 rotation = int(round(getattr(frame, "rotation", 0) or 0)) % 360
-                yield ms, _rotate(frame.to_ndarray(format="rgb24"), rotation)
+                yield index, ms, _rotate(frame.to_ndarray(format="rgb24"), rotation)
         except av.error.FFmpegError as exc:
             raise InputError(f"{path}: video could not be decoded ({exc.__class__.__name__})") from None
 
 
-def _decode_folder(folder: Path, fps: float | None) -> Iterator[tuple[int, np.ndarray]]:
+def _decode_folder(folder: Path, fps: float | None, start: int = 0) -> Iterator[tuple[int, int, np.ndarray]]:
     rate = float(fps or FOLDER_FPS)
     size = None
     for index, file in enumerate(_images(folder)):
+        if index < start:  # the images before the range are not read
+            continue
         rgb = _read_image(file)
         if size is not None and rgb.shape != size:
             raise InputError(f"{file}: image is {rgb.shape[1]}x{rgb.shape[0]} but the first one is "
                              f"{size[1]}x{size[0]}")
         size = rgb.shape
-        yield int(round(index * 1000 / rate)), rgb
+        yield index, int(round(index * 1000 / rate)), rgb
 
 
 def iter_frames(path: str | Path, *, start: int = 0, end: int | None = None,
-                fps: float | None = None) -> Iterator[tuple[int, np.ndarray]]:
+                fps: float | None = None, pts: np.ndarray | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """Yield ``(timestamp_ms, rgb)`` for frames ``start <= i < end`` of a video or image folder.
 
     ``rgb`` is (height, width, 3) uint8, upright (rotation metadata applied). Timestamps come
     from the stream's presentation times and are strictly increasing (MediaPipe's VIDEO mode
-    requires it).
+    requires it). ``pts``: the video's :func:`frame_pts`, to seek to the keyframe before
+    ``start`` instead of decoding every frame before it.
     """
     path = Path(path)
-    source = _decode_folder(path, fps) if path.is_dir() else _decode_video(path, fps)
+    source = _decode_folder(path, fps, start) if path.is_dir() else _decode_video(path, fps, start, pts)
     last = -1
-    for index, (stamp, rgb) in enumerate(source):
+    for index, stamp, rgb in source:
         if end is not None and index >= end:
             break
         ms = max(stamp, last + 1)

@@ -84,6 +84,9 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
                    help="causal One Euro filter on the landmarks, for live-like use (default "
                         "settings 1.0 Hz, 0.05). Offline, prefer the solve's zero-lag smoothing; "
                         "MediaPipe's video mode already smooths")
+    p.add_argument("--workers", type=whole(1), default=None, metavar="N",
+                   help="processes tracking overlapping segments of the video in parallel, each with "
+                        "its own landmarker (default: one per core; 1 = one process)")
 
 
 def add_solve_options(p: argparse.ArgumentParser) -> None:
@@ -138,7 +141,7 @@ def solve_kwargs(args) -> dict:
 
 def capture_kwargs(args) -> dict:
     return {"start": args.start, "end": args.end, "fps": args.fps, "face": args.face,
-            "one_euro": _one_euro(args.one_euro)}
+            "one_euro": _one_euro(args.one_euro), "workers": args.workers}
 
 
 def _one_euro(text: str | None) -> dict | None:

@@ -1,0 +1,85 @@
+"""Parallel tracking: the segment plan, seeking, stitching one person, and the real clip."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from keyshape.capture._parallel import Segment, _same_person, _seed, plan_segments
+from keyshape.capture.video import frame_pts, iter_frames
+
+
+@pytest.mark.parametrize("n, workers, overlap", [(472, 2, 12), (1000, 4, 12), (101, 3, 8), (10_000, 7, 15)])
+def test_plan_covers_every_frame_once_with_equal_work(n, workers, overlap):
+    segments = plan_segments(5, 5 + n, workers, overlap)
+    assert len(segments) == workers
+    assert segments[0].first == segments[0].share == 5 and segments[-1].end == 5 + n
+    for before, after in itertools.pairwise(segments):
+        assert after.share == before.end  # shares tile the range
+        assert after.share - after.first == overlap  # each later segment warms up first
+    work = [s.end - s.first for s in segments]
+    assert max(work) - min(work) <= workers  # equal work, warm-up included
+
+
+def test_plan_gives_short_inputs_fewer_workers():
+    assert plan_segments(0, 30, 4, 12) == [Segment(0, 0, 30)]
+    assert len(plan_segments(0, 100, 8, 12)) == 2
+
+
+def test_seeking_gives_the_frames_decoding_gives(demo_clip):
+    pts = frame_pts(demo_clip)
+    assert len(pts) == 472 and np.all(np.diff(pts) > 0)
+    decoded = list(iter_frames(demo_clip, start=230, end=250))
+    sought = list(iter_frames(demo_clip, start=230, end=250, pts=pts))
+    assert [ms for ms, _ in sought] == [ms for ms, _ in decoded]
+    assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(decoded, sought))
+
+
+def _faces(centres, width=100.0) -> np.ndarray:
+    """(n, 478, 3) points: a square face of ``width`` around each centre (NaN centre: no face)."""
+    rng = np.random.default_rng(0)
+    offsets = rng.uniform(-width / 2, width / 2, (478, 3))
+    offsets[0, 0], offsets[1, 0] = -width / 2, width / 2
+    return np.array([np.asarray(c, float)[[0, 1, 1]] * (1, 1, 0) + offsets for c in centres])
+
+
+def test_same_person_when_the_overlaps_agree():
+    before = _faces([(100, 100)] * 12)
+    assert _same_person(before, _faces([(103, 101)] * 12), _faces([(105, 100)] * 5), last=None)
+
+
+def test_other_person_when_the_overlaps_disagree():
+    before = _faces([(100, 100)] * 12)
+    assert not _same_person(before, _faces([(400, 100)] * 12), _faces([(400, 100)] * 5), last=None)
+
+
+def test_without_a_shared_face_the_followers_rule_decides():
+    nothing = _faces([(np.nan, np.nan)] * 12)
+    last = (-20, np.array([100.0, 100.0]), 100.0)  # the earlier segment's face, 20 frames before the share
+    near, far = _faces([(150, 100)] * 5), _faces([(500, 100)] * 5)
+    assert _same_person(nothing, nothing, near, last)
+    assert not _same_person(nothing, nothing, far, last)
+    assert _same_person(nothing, nothing, far, None)  # nobody followed yet: any face starts it
+
+
+def test_a_seeded_follower_starts_from_the_earlier_persons_last_face():
+    seed = _seed((-3, np.array([100.0, 100.0]), 100.0))
+    assert seed["missing"] == 2 and seed["width"] == 100.0 and np.allclose(seed["last"], [100, 100])
+    assert _seed(None) == {}
+
+
+@pytest.mark.slow
+def test_parallel_track_matches_the_sequential_one(demo_clip, real_track):
+    from keyshape.capture import track_video
+
+    parallel = track_video(demo_clip, progress=False, workers=2)
+    assert parallel.points.shape == real_track.points.shape
+    assert np.array_equal(parallel.frame_index, real_track.frame_index)
+    assert np.array_equal(parallel.time, real_track.time)
+    assert np.array_equal(parallel.valid, real_track.valid)
+    iod = np.linalg.norm(real_track.points[:, 33, :2] - real_track.points[:, 263, :2], axis=1)
+    error = np.linalg.norm(parallel.points[..., :2] - real_track.points[..., :2], axis=2).mean(axis=1) / iod
+    assert np.nanmax(error) < 0.01 and np.nanmean(error) < 0.001  # tracking noise: about 1 % of the IOD
+    assert np.nanmax(np.abs(parallel.blendshapes - real_track.blendshapes)) < 0.1
