@@ -87,6 +87,9 @@ class Track:
     time : (n_frames,) float
         The source's presentation time of each row in seconds (variable frame rate clips keep
         their real timing); default ``frame_index / fps``; strictly increasing.
+    visibility : (n_frames, n_landmarks) float in [0, 1] or None
+        How visible each landmark is (1 seen, 0 hidden by a hand, an object or the head turned
+        away), estimated from the video (:mod:`keyshape.capture.visibility`); None: all seen.
     """
 
     points: np.ndarray
@@ -97,6 +100,7 @@ class Track:
     head_matrix: np.ndarray | None = None
     frame_index: np.ndarray | None = None
     time: np.ndarray | None = None
+    visibility: np.ndarray | None = None
 
     def __post_init__(self):
         points = np.asarray(self.points, dtype=float)
@@ -133,6 +137,12 @@ class Track:
                     f"head_matrix must have shape ({points.shape[0]}, 4, 4); got {mats.shape}"
                 )
             object.__setattr__(self, "head_matrix", _frozen(mats))
+        if self.visibility is not None:
+            seen = np.asarray(self.visibility, dtype=float)
+            if seen.shape != points.shape[:2] or not ((seen >= 0) & (seen <= 1)).all():
+                raise InputError(f"visibility must be {points.shape[:2]} values in [0, 1]; got shape "
+                                 f"{seen.shape}")
+            object.__setattr__(self, "visibility", _frozen(seen))
 
     n_frames = property(lambda self: self.points.shape[0])
     n_landmarks = property(lambda self: self.points.shape[1])
@@ -148,10 +158,15 @@ class Track:
         """(n_frames,) float: seconds from the first frame (``time - time[0]``)."""
         return self.time - self.time[0] if self.n_frames else self.time
 
+    @property
+    def seen(self) -> np.ndarray:
+        """(n_frames, n_landmarks) float: ``visibility``, or all ones when the track has none."""
+        return self.visibility if self.visibility is not None else np.ones(self.points.shape[:2])
+
     def with_points(self, points: np.ndarray) -> Track:
         """The same take with other landmark positions (e.g. aligned ones)."""
         return Track(points, self.fps, self.image_size, self.blendshapes, self.blendshape_names,
-                     self.head_matrix, self.frame_index, self.time)
+                     self.head_matrix, self.frame_index, self.time, self.visibility)
 
     def __getitem__(self, frames: slice) -> Track:
         """The frames ``frames`` (a slice) of the take, with their scores and head matrices."""
@@ -160,7 +175,7 @@ class Track:
         pick = lambda a: None if a is None else a[frames]  # noqa: E731
         return Track(self.points[frames], self.fps, self.image_size, pick(self.blendshapes),
                      self.blendshape_names, pick(self.head_matrix), self.frame_index[frames],
-                     self.time[frames])
+                     self.time[frames], pick(self.visibility))
 
     def __repr__(self) -> str:
         return (

@@ -83,7 +83,8 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
     region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
     stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
     neutral = _neutral_frame(first, neutral, stable)
-    together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps)
+    seen = None if all(t.visibility is None for t in tracks) else np.concatenate([t.seen for t in tracks])
+    together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps, visibility=seen)
     keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
                           neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)
     if mirror:

@@ -235,6 +235,13 @@ def _warn_if_truncated(path: Path, info: VideoInfo, decoded: int, end: int | Non
                       InputWarning, stacklevel=3)
 
 
+def _visibility(path, points: np.ndarray, start: int, end: int | None, fps: float | None) -> np.ndarray:
+    """(n_frames, n_landmarks) visibility of the tracked landmarks (:mod:`.visibility`)."""
+    from .visibility import estimate_visibility
+
+    return estimate_visibility(path, points, start=start, end=end, fps=fps)
+
+
 def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,
                 end: int | None = None, fps: float | None = None, face: int = 0,
                 one_euro: dict | None = None, progress: bool = True, workers: int | None = 1) -> Track:
@@ -270,7 +277,8 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
         arrays = spool.arrays()
         clock = spool.clock()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
-                      _blendshape_names(), arrays["matrix"], clock["frame_index"], clock["time"])
+                      _blendshape_names(), arrays["matrix"], clock["frame_index"], clock["time"],
+                      _visibility(path, arrays["points"], start, end, fps))
         del arrays
     return track
 
@@ -294,7 +302,7 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],
                            blendshape_names=_blendshape_names(), head_matrix=arrays["matrix"],
-                           **spool.clock())
+                           visibility=_visibility(path, arrays["points"], start, end, fps), **spool.clock())
         del arrays
     return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "fps": info.fps,
             "image_size": (info.width, info.height)}

@@ -1,8 +1,9 @@
 """Track files (``.npz``): ``points`` (n_frames, n_landmarks, 2|3) and ``fps``, plus optional
 ``frame_index`` (n_frames,) source frame numbers, ``time`` (n_frames,) source times in seconds,
-``image_size``, ``blendshapes`` + ``blendshape_names`` and ``head_matrix`` (DESIGN.md). Files
-written before ``frame_index`` and ``time`` existed still load: their frames count from 0 at
-``fps``. Every file read is checked by :func:`keyshape.io.validate.check_track_arrays`."""
+``image_size``, ``blendshapes`` + ``blendshape_names``, ``head_matrix`` (DESIGN.md) and
+``visibility`` (n_frames, n_landmarks) in [0, 1]. Files written before ``frame_index`` and
+``time`` existed still load: their frames count from 0 at ``fps``; files without ``visibility``
+load as all visible. Every file read is checked by :func:`keyshape.io.validate.check_track_arrays`."""
 
 from __future__ import annotations
 
@@ -26,17 +27,20 @@ def save_track(track: Track, path: str | Path) -> Path:
     """Write ``track`` to ``path`` (.npz), atomically."""
     return write_track_arrays(path, points=track.points, fps=track.fps, image_size=track.image_size,
                               blendshapes=track.blendshapes, blendshape_names=track.blendshape_names,
-                              head_matrix=track.head_matrix, frame_index=track.frame_index, time=track.time)
+                              head_matrix=track.head_matrix, frame_index=track.frame_index, time=track.time,
+                              visibility=track.visibility)
 
 
 def write_track_arrays(path: str | Path, *, points: np.ndarray, fps: float,
                        image_size: tuple[int, int] | None = None, blendshapes: np.ndarray | None = None,
                        blendshape_names: tuple[str, ...] = (), head_matrix: np.ndarray | None = None,
-                       frame_index: np.ndarray | None = None, time: np.ndarray | None = None) -> Path:
+                       frame_index: np.ndarray | None = None, time: np.ndarray | None = None,
+                       visibility: np.ndarray | None = None) -> Path:
     """Write track arrays (memory maps welcome: they are streamed in chunks), atomically.
 
     points : (n_frames, n_landmarks, 2|3); blendshapes : (n_frames, n_scores);
-    head_matrix : (n_frames, 4, 4); frame_index : (n_frames,) int; time : (n_frames,) seconds.
+    head_matrix : (n_frames, 4, 4); frame_index : (n_frames,) int; time : (n_frames,) seconds;
+    visibility : (n_frames, n_landmarks) in [0, 1].
     """
     arrays = {"points": points, "fps": np.float64(fps), "format_version": np.int64(FORMAT_VERSION)}
     if frame_index is not None:
@@ -50,6 +54,8 @@ def write_track_arrays(path: str | Path, *, points: np.ndarray, fps: float,
         arrays["blendshape_names"] = np.array(blendshape_names, dtype=str)
     if head_matrix is not None:
         arrays["head_matrix"] = head_matrix
+    if visibility is not None:
+        arrays["visibility"] = np.asarray(visibility, dtype=np.float32)
     with atomic_path(path) as tmp:
         _write_npz(tmp, arrays)
     return Path(path)
@@ -102,7 +108,8 @@ def load_track(path: str | Path, *, fps: float | None = None) -> Track:
         return Track(arrays["points"], float(np.asarray(arrays["fps"]).reshape(-1)[0]),
                      tuple(size) if size is not None else None,
                      arrays.get("blendshapes"), tuple(str(n) for n in names) if names is not None else (),
-                     arrays.get("head_matrix"), arrays.get("frame_index"), arrays.get("time"))
+                     arrays.get("head_matrix"), arrays.get("frame_index"), arrays.get("time"),
+                     arrays.get("visibility"))
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
 

@@ -116,6 +116,11 @@ def _check_track_extras(path, arrays: dict, n: int) -> None:
     matrix = arrays.get("head_matrix")
     if matrix is not None and (not _numeric(matrix) or matrix.shape != (n, 4, 4)):
         raise _fail(path, "head_matrix", f"must have shape ({n}, 4, 4); got {matrix.shape}")
+    seen = arrays.get("visibility")
+    if seen is not None and (not _numeric(seen) or seen.shape != (n, arrays["points"].shape[1])
+                             or not ((seen >= 0) & (seen <= 1)).all()):
+        raise _fail(path, "visibility", f"must be (n_frames, n_landmarks) = ({n}, {arrays['points'].shape[1]}) "
+                                        f"values in [0, 1]; got shape {seen.shape}")
 
 
 # -- keys.json ----------------------------------------------------------------------------------

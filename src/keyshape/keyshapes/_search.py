@@ -75,6 +75,7 @@ __all__ = ["MAX_CANDIDATES", "MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "cho
 
 Method = Literal["spa", "spread", "hull"]
 METHODS: tuple[str, ...] = ("spa", "spread", "hull")
+HIDDEN_SHARE = 0.3  # a region with more of its landmarks hidden in a frame takes no key from it
 MAX_CANDIDATES = 2048  # more candidate frames: keys are searched among this many (see the module notes)
 
 
@@ -171,16 +172,17 @@ def find_keyshapes(
     regions = check_regions(regions, aligned.n_landmarks)
     neutral_frame = check_neutral_frame(aligned, neutral_frame)
     upper = check_upper(upper)
-    candidates = candidate_frames(aligned, neutral_frame)
+    seen = {region: visible_frames(aligned, candidate_frames(aligned, neutral_frame), landmarks)
+            for region, landmarks in regions.items()}
     if isinstance(n_keys, str) and n_keys == "auto":
         picked = _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys)
         rows = {region: pick[0] for region, pick in picked.items()}
     else:
         counts = _check_counts(n_keys, regions)
-        rows = {region: _select_rows(region_data(aligned, candidates, neutral_frame, landmarks),
+        rows = {region: _select_rows(region_data(aligned, seen[region], neutral_frame, landmarks),
                                      counts[region], method, upper, region)
                 for region, landmarks in regions.items()}
-    frames = [int(candidates[i]) for region in regions for i in rows[region]]
+    frames = [int(seen[region][i]) for region in regions for i in rows[region]]
     key_regions = [region for region in regions for _ in rows[region]]
     neutral = aligned.points[neutral_frame]
     return KeyShapes(
@@ -255,11 +257,11 @@ def choose_n_keys(
 def _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys):
     """region -> (rows of the candidates, RMS error in %): the fewest keys below ``max_error``."""
     max_error, max_keys = _check_target(max_error, max_keys)
-    candidates = candidate_frames(aligned, neutral_frame)
-    n_valid = candidates.size + 1  # the neutral frame counts, with zero error
     scale, _ = face_scale(aligned.points[neutral_frame])
     out = {}
     for region, landmarks in regions.items():
+        candidates = visible_frames(aligned, candidate_frames(aligned, neutral_frame), landmarks)
+        n_valid = candidates.size + 1  # the neutral frame counts, with zero error
         data = region_data(aligned, candidates, neutral_frame, landmarks)
         to_percent = 100.0 / (scale * np.sqrt(n_valid * len(landmarks)))  # sqrt(Σ|r|²) -> RMS %
         pool = _select.pool(data, MAX_CANDIDATES)
@@ -279,6 +281,20 @@ def candidate_frames(aligned: Track, neutral_frame: int) -> np.ndarray:
     """``(n_candidates,)`` int: the valid frames but the neutral one."""
     candidates = np.flatnonzero(aligned.valid)
     return candidates[candidates != neutral_frame]
+
+
+def visible_frames(aligned: Track, candidates: np.ndarray, landmarks) -> np.ndarray:
+    """The ``candidates`` (n_candidates,) int in which the region of ``landmarks`` is not hidden.
+
+    A region is hidden in a frame when more than ``HIDDEN_SHARE`` of its landmarks have a
+    visibility below 0.5 (a hand over the mouth or an eye; see :attr:`Track.visibility`): a key
+    is a real frame of the region, never the tracker's guess under a hand. Tracks without
+    visibility keep every candidate; so does a region hidden in every candidate.
+    """
+    if aligned.visibility is None:
+        return candidates
+    hidden = (aligned.visibility[np.ix_(candidates, landmarks)] < 0.5).mean(axis=1) > HIDDEN_SHARE
+    return candidates[~hidden] if (~hidden).any() else candidates
 
 
 def region_data(aligned: Track, candidates: np.ndarray, neutral_frame: int, landmarks) -> np.ndarray:

@@ -1,0 +1,242 @@
+"""Per-landmark visibility from the video: a hand or an object over the face, a side turned away.
+
+MediaPipe places all 478 landmarks in every frame, also under a hand, and says nothing about it.
+:func:`estimate_visibility` measures two things per landmark and frame and returns a visibility
+in [0, 1] (1 = seen):
+
+* **Appearance.** A small colour patch is read around the landmark (a 5 x 5 grid spanning
+  ``PATCH_RADIUS`` inter-ocular distances, turned with the eye line, so it follows the face).
+  A landmark is compared with *exemplars*: its own patches in up to ``N_EXEMPLARS`` frames of the
+  take where it looked most typical (nearest the take's median patch, read on a sample of at most
+  ``N_SAMPLE`` frames). The distance to the nearest exemplar, as a robust z-score (median and
+  MAD over the sample), is large when something else is in front of the landmark: a hand over the
+  mouth hides the lips' colour and the mouth line, fingers over an eye its lashes and iris. The
+  nearest of several exemplars, not one reference frame, keeps an open mouth or a closed eye from
+  counting as hidden. The z-scores are averaged over each landmark's nearest neighbours on the face
+  (occluders are larger than a landmark) and over three frames.
+* **Facing.** For a 3-D track, the normal of the face mesh at the landmark (from the tracked
+  points) tells whether its side of the face is turned away from the camera: back-facing
+  landmarks are hidden by the head itself.
+
+The method assumes an occluder hides a part of the face in fewer than half of the frames (the
+median patch is then the part's own). It is measured on the embedded clip against hand labels in
+``benchmarks/occlusion_labels.json`` (see docs/occlusion.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..schemes import eye_corners, face_triangles
+
+__all__ = ["estimate_visibility", "visibility_from_patches", "read_patches", "facing"]
+
+PATCH_RADIUS = 0.06  # of the inter-ocular distance
+PATCH_GRID = 5
+N_SAMPLE = 300
+N_EXEMPLARS = 16
+N_NEIGHBOURS = 8
+Z_HIDDEN = 0.9  # the robust z-score (smoothed) at which visibility is 0.5
+Z_WIDTH = 0.2
+FACING_HIDDEN = 0.15  # a landmark whose normal points this far away from the camera is hidden
+CHUNK = 64  # frames scored at once (memory: CHUNK x n_landmarks x N_EXEMPLARS patches)
+
+
+def _grid() -> np.ndarray:
+    """(PATCH_GRID**2, 2) offsets in [-1, 1]."""
+    g = np.linspace(-1.0, 1.0, PATCH_GRID)
+    gx, gy = np.meshgrid(g, g)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """image (h, w, c) sampled at float pixel positions x, y (any shape) -> (*x.shape, c)."""
+    h, w = image.shape[:2]
+    x = np.clip(x, 0, w - 1.001)
+    y = np.clip(y, 0, h - 1.001)
+    x0, y0 = x.astype(np.int64), y.astype(np.int64)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def read_patches(rgb: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Colour patches around every landmark of one frame.
+
+    Parameters
+    ----------
+    rgb : (height, width, 3) uint8
+    points : (n_landmarks, 2 or 3) float, pixels (NaN: no face)
+
+    Returns
+    -------
+    (n_landmarks, PATCH_GRID**2, 3) float32 in [0, 1]; NaN where ``points`` is NaN.
+    """
+    xy = np.asarray(points, dtype=float)[:, :2]
+    if not np.isfinite(xy).all():
+        return np.full((len(xy), PATCH_GRID ** 2, 3), np.nan, np.float32)
+    corners = eye_corners(len(xy))
+    span = xy[corners[1]] - xy[corners[0]] if corners else np.ptp(xy, axis=0) * [1.0, 0.0]
+    size = max(float(np.linalg.norm(span)), 1e-6)
+    c, s = span / size
+    rotation = np.array([[c, -s], [s, c]])
+    offsets = _grid() * PATCH_RADIUS * size @ rotation.T  # (g, 2)
+    at = xy[:, None, :] + offsets[None]  # (n_landmarks, g, 2)
+    return (_bilinear(rgb.astype(np.float32) / 255.0, at[..., 0], at[..., 1])).astype(np.float32)
+
+
+def _distances(patches: np.ndarray, exemplars: np.ndarray) -> np.ndarray:
+    """RMS distance of each landmark's patch to its nearest exemplar.
+
+    patches : (n_frames, n_landmarks, g, 3); exemplars : (n_landmarks, n_ex, g, 3)
+    -> (n_frames, n_landmarks); NaN patches give NaN (a frame with no face)
+    """
+    n_frames, n_landmarks = patches.shape[:2]
+    out = np.empty((n_frames, n_landmarks), np.float32)
+    ex = exemplars.reshape(n_landmarks, exemplars.shape[1], -1).astype(np.float32)
+    ex_sq = (ex ** 2).sum(axis=2)  # (l, e)
+    for at in range(0, n_frames, CHUNK):
+        x = patches[at:at + CHUNK].reshape(-1, n_landmarks, ex.shape[2]).astype(np.float32)
+        # |x - e|^2 = |x|^2 + |e|^2 - 2 x.e;  f: frame, l: landmark, e: exemplar, g: grid x colour
+        cross = np.matmul(x.transpose(1, 0, 2), ex.transpose(0, 2, 1)).transpose(1, 0, 2)  # (f, l, e)
+        sq = (x ** 2).sum(axis=2)[:, :, None] + ex_sq[None] - 2 * cross
+        out[at:at + CHUNK] = np.sqrt(np.maximum(sq.min(axis=2), 0.0) / ex.shape[2])
+    return out
+
+
+class _Reference:
+    """Per-landmark exemplar patches and the robust scale of distances to them, from a sample."""
+
+    def __init__(self, sample: np.ndarray):  # sample (n_sample, n_landmarks, g, 3), finite frames
+        median = np.median(sample, axis=0)
+        first = np.sqrt(((sample - median) ** 2).mean(axis=(2, 3)))  # (n_sample, n_landmarks)
+        typical = first <= np.median(first, axis=0)
+        picks = []
+        for j in range(sample.shape[1]):
+            frames = np.flatnonzero(typical[:, j])
+            picks.append(sample[frames[np.linspace(0, len(frames) - 1, N_EXEMPLARS).astype(int)], j])
+        self.exemplars = np.stack(picks)  # (n_landmarks, n_ex, g, 3)
+        d = _distances(sample, self.exemplars)
+        self.median = np.median(d, axis=0)
+        self.mad = np.median(np.abs(d - self.median), axis=0) + 1e-4
+
+    def z(self, patches: np.ndarray) -> np.ndarray:
+        """(n_frames, n_landmarks) robust z-scores of the distance to the nearest exemplar."""
+        return (_distances(patches, self.exemplars) - self.median) / self.mad
+
+
+def _neighbours(shape: np.ndarray) -> np.ndarray:
+    """(n_landmarks, N_NEIGHBOURS + 1) each landmark and its nearest ones in ``shape`` (n_landmarks, 2)."""
+    d = np.linalg.norm(shape[:, None, :2] - shape[None, :, :2], axis=-1)
+    return np.argsort(d, axis=1)[:, :N_NEIGHBOURS + 1]
+
+
+def _smooth(z: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """Average z (n_frames, n_landmarks) over the landmark's neighbours and three frames."""
+    z = np.nan_to_num(z, nan=0.0)[:, neighbours].mean(axis=2)
+    padded = np.concatenate([z[:1], z, z[-1:]])
+    return (padded[:-2] + padded[1:-1] + padded[2:]) / 3.0
+
+
+def _outward(tris: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """The triangles (n_faces, 3) wound so their normals point out of the head in ``shape``.
+
+    The mesh's winding is not consistent; "out" is away from a point half a face width behind
+    the face's centre (image axes: z away from the camera).
+    """
+    centre = np.nanmean(shape, axis=0) + [0.0, 0.0, 0.5 * np.ptp(shape[:, 0])]
+    a, b, c = (shape[tris[:, k]] for k in range(3))
+    out = np.einsum("fd,fd->f", np.cross(b - a, c - a), (a + b + c) / 3 - centre)
+    return np.where((out < 0)[:, None], tris[:, ::-1], tris)
+
+
+def facing(points: np.ndarray) -> np.ndarray:
+    """How much each landmark faces the camera: the z of its unit mesh normal, toward the camera.
+
+    points : (n_frames, 478 or 468, 3) in image axes (z away from the camera)
+    -> (n_frames, n_landmarks) in [-1, 1]: 1 faces the camera, < 0 is turned away. Iris points
+    (468..477) take their eye's mean.
+    """
+    p = np.asarray(points, dtype=float)
+    tris = _outward(face_triangles(), np.nanmedian(p, axis=0))
+    a, b, c = (p[:, tris[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)  # (n_frames, n_faces, 3), area-weighted
+    vertex = np.zeros((p.shape[0], 468, 3))
+    for k in range(3):
+        np.add.at(vertex, (slice(None), tris[:, k]), normals)
+    vertex /= np.linalg.norm(vertex, axis=-1, keepdims=True) + 1e-12
+    toward = -vertex[..., 2]
+    if p.shape[1] > 468:
+        iris = np.nanmean(toward, axis=1, keepdims=True).repeat(p.shape[1] - 468, axis=1)
+        toward = np.concatenate([toward, iris], axis=1)
+    return toward
+
+
+def visibility_from_patches(patches_sample: np.ndarray, patches: np.ndarray, points: np.ndarray,
+                            *, neighbours: np.ndarray | None = None) -> np.ndarray:
+    """Visibility from patches: the core of :func:`estimate_visibility`, without video decoding.
+
+    Parameters
+    ----------
+    patches_sample : (n_sample, n_landmarks, g, 3) float, patches of frames with a face
+    patches : (n_frames, n_landmarks, g, 3) float, the frames to score (NaN: no face)
+    points : (n_frames, n_landmarks, 2 or 3) float, the track's pixels
+
+    Returns
+    -------
+    (n_frames, n_landmarks) float32 in [0, 1]; 1 where there is no face (nothing to hide).
+    """
+    return _visibility(_Reference(patches_sample).z(patches), points, neighbours)
+
+
+def _visibility(z: np.ndarray, points: np.ndarray, neighbours: np.ndarray | None = None) -> np.ndarray:
+    """z (n_frames, n_landmarks) appearance z-scores and the track -> visibility in [0, 1]."""
+    if neighbours is None:
+        neighbours = _neighbours(np.nanmedian(points, axis=0))
+    seen = 1.0 / (1.0 + np.exp(np.clip((_smooth(z, neighbours) - Z_HIDDEN) / Z_WIDTH, -50, 50)))
+    if points.shape[2] == 3 and points.shape[1] in (468, 478):
+        seen = seen * np.clip((facing(points) + FACING_HIDDEN) / FACING_HIDDEN, 0.0, 1.0)
+    valid = np.isfinite(points).all(axis=(1, 2))
+    seen[~valid] = 1.0
+    return seen.astype(np.float32)
+
+
+def estimate_visibility(path: str | Path, points: np.ndarray, *, start: int = 0, end: int | None = None,
+                        fps: float | None = None) -> np.ndarray:
+    """Per-landmark visibility of a tracked take, read again from its video.
+
+    Parameters
+    ----------
+    path : the video (or image folder) the track was made from
+    points : (n_frames, n_landmarks, 2 or 3) float, its track in pixels (NaN frames: no face);
+        row i is the i-th frame decoded with ``start``, ``end`` and ``fps``, as in tracking
+    start, end, fps : the range and rate the track was made with
+
+    Returns
+    -------
+    visibility : (n_frames, n_landmarks) float32 in [0, 1]
+
+    The video is decoded twice: once for a sample of frames (the exemplars), once for all.
+    """
+    from .video import iter_frames
+
+    points = np.asarray(points)
+    valid = np.flatnonzero(np.isfinite(points[:, :, :2]).all(axis=(1, 2)))
+    sample = set(valid[np.linspace(0, len(valid) - 1, min(N_SAMPLE, len(valid))).astype(int)].tolist())
+    sampled = [read_patches(rgb, points[i]) for i, (_, rgb) in zip(range(len(points)), iter_frames(
+        path, start=start, end=end, fps=fps)) if i in sample]
+    reference = _Reference(np.stack(sampled))
+    z = np.zeros(points.shape[:2], np.float32)  # a video that ends early: the rest counts as seen
+    chunk: list[np.ndarray] = []
+    done = 0
+    for i, (_, rgb) in zip(range(len(points)), iter_frames(path, start=start, end=end, fps=fps)):
+        chunk.append(read_patches(rgb, points[i]))
+        if len(chunk) == CHUNK:
+            z[done:done + CHUNK] = reference.z(np.stack(chunk))
+            done, chunk = done + CHUNK, []
+    if chunk:
+        z[done:done + len(chunk)] = reference.z(np.stack(chunk))
+    return _visibility(z, points)

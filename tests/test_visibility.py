@@ -1,0 +1,86 @@
+"""Occlusion: per-landmark visibility from the video, the track file, and key discovery."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from keyshape.containers import Track
+from keyshape.exceptions import InputError
+from keyshape.io.track import load_track, save_track
+from keyshape.keyshapes._search import visible_frames
+from keyshape.schemes import mediapipe_scheme
+
+LABELS = Path(__file__).parents[1] / "benchmarks" / "occlusion_labels.json"
+
+
+def _labelled(part: str, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(covered, ambiguous) (n_frames,) bool from the hand labels."""
+    labels = json.loads(LABELS.read_text())
+    covered = np.zeros(n_frames, bool)
+    for first, last in labels["covered"][part]:
+        covered[first:last + 1] = True
+    ambiguous = np.zeros(n_frames, bool)
+    ambiguous[labels["ambiguous"][part]] = True
+    return covered, ambiguous
+
+
+def test_visibility_is_checked_and_sliced():
+    points = np.zeros((4, 5, 2))
+    with pytest.raises(InputError, match="visibility must be"):
+        Track(points, 30.0, visibility=np.full((4, 5), 2.0))
+    track = Track(points, 30.0, visibility=np.linspace(0, 1, 20).reshape(4, 5))
+    assert track[1:3].visibility.shape == (2, 5)
+    np.testing.assert_array_equal(track.with_points(points + 1).visibility, track.visibility)
+    assert Track(points, 30.0).seen.min() == 1.0
+
+
+def test_track_file_keeps_visibility_and_old_files_load_as_seen(tmp_path):
+    points = np.random.default_rng(0).normal(size=(3, 4, 3))
+    seen = np.array([[1, 0.5, 0, 1]] * 3, dtype=float)
+    back = load_track(save_track(Track(points, 25.0, visibility=seen), tmp_path / "v.npz"))
+    np.testing.assert_allclose(back.visibility, seen)
+    old = load_track(save_track(Track(points, 25.0), tmp_path / "old.npz"))
+    assert old.visibility is None and (old.seen == 1).all()
+
+
+def test_keys_never_come_from_frames_whose_region_is_hidden():
+    points = np.zeros((6, 4, 2))
+    seen = np.ones((6, 4))
+    seen[2, :2] = 0.0  # region [0, 1] hidden in frame 2
+    track = Track(points, 30.0, visibility=seen)
+    assert visible_frames(track, np.arange(1, 6), [0, 1]).tolist() == [1, 3, 4, 5]
+    assert visible_frames(track, np.arange(1, 6), [2, 3]).tolist() == [1, 2, 3, 4, 5]
+    assert visible_frames(Track(points, 30.0), np.arange(6), [0]).size == 6
+
+
+@pytest.mark.slow
+def test_mouth_visibility_on_the_labelled_clip(real_track):
+    """Mouth (the lips) hidden in >= 90 % of the covered frames, seen in >= 95 % of the clear ones."""
+    lips = np.array(mediapipe_scheme()["contours"]["lips"])
+    mouth = real_track.visibility[:, lips].mean(axis=1)
+    covered, ambiguous = _labelled("mouth", real_track.n_frames)
+    assert (mouth[covered & ~ambiguous] < 0.5).mean() >= 0.90
+    assert (mouth[~covered & ~ambiguous] >= 0.5).mean() >= 0.95
+
+
+@pytest.mark.slow
+def test_covered_eye_is_hidden_on_the_labelled_clip(real_track):
+    eye = np.array(mediapipe_scheme()["contours"]["right_eye"])
+    seen = real_track.visibility[:, eye].mean(axis=1)
+    covered, ambiguous = _labelled("right_eye", real_track.n_frames)
+    assert (seen[covered & ~ambiguous] < 0.5).mean() >= 0.90
+
+
+@pytest.mark.slow
+def test_no_default_key_in_a_covered_frame(real_track):
+    from keyshape.app import discover_keys
+
+    keys = discover_keys(real_track)
+    mouth, _ = _labelled("mouth", real_track.n_frames)
+    eye, _ = _labelled("right_eye", real_track.n_frames)
+    for region, frame in zip(keys.key_regions, keys.frames):
+        assert not (mouth if region == "lower" else eye)[frame], (region, int(frame))
