@@ -91,8 +91,10 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
     if options.rig is None:
         from ..targets import default_character
 
-        rig = default_character(keys)  # a stylised head with proposed targets (issue 7)
-        return rig, Mapping.by_name(keys.names, rig.names), False, None
+        from ..targets import with_gaze_targets
+
+        rig = with_gaze_targets(default_character(keys))  # a stylised head with proposed targets (issue 7)
+        return rig, Mapping.by_name(keys.names, rig.names, allow_extra=True), False, None
     if options.auto_targets:
         from ..targets import auto_targets
 
@@ -186,12 +188,27 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
 
         source = write_gltf_targets(source, stage / ".character.glb", rig)
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
-    export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes)
+    colours = None
+    if options.rig is None:  # the stylised head: its colours, and its eyes turned by the gaze targets
+        anim, colours = _default_character_extras(anim, solved.gaze)
+    export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes, colours=colours)
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
                source=source, eyes=eyes)
     save_take_info(stage / "take.json", video=video, track=track, keys=keys)
     (stage / ".character.glb").unlink(missing_ok=True)
+
+
+def _default_character_extras(anim, gaze):
+    """The built-in head's animation with its gaze targets driven by ``gaze`` (if any), and its colours."""
+    from ..containers import Weights
+    from ..targets import GAZE_NAMES, gaze_weights, stylised_head
+
+    values = np.array(anim.values, dtype=float)
+    if gaze is not None:
+        columns = [anim.names.index(n) for n in GAZE_NAMES]
+        values[:, columns] = gaze_weights(gaze.yaw, gaze.pitch)
+    return Weights(values, anim.names, fps=anim.fps), stylised_head().colours
 
 
 def _mirrors_made(rig: Rig, keys: KeyShapes, source: Path) -> bool:

@@ -81,7 +81,7 @@ def _source_kind(source) -> Format | None:
 
 def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | None = None,
            format: str | Format | None = None, source=None, head: str | None = None,
-           eyes=None) -> Path:
+           eyes=None, colours=None) -> Path:
     """Write ``animation`` to ``path`` in the chosen format, atomically.
 
     Parameters
@@ -108,6 +108,8 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     eyes : (n_frames, 2, 3, 3) float, optional, keyword-only
         Eye rotations relative to the head (left eye first), for ``livelink`` and for ``glb`` onto
         ``source`` (its eye nodes); files keyshape builds have no eyes and ignore them.
+    colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
+        sRGB base colour per vertex of ``rig``, for ``glb`` written from it (``COLOR_0``).
 
     Returns
     -------
@@ -128,7 +130,7 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
 
         if glb_source:
             return animate_gltf(source, animation, path, poses=poses, head=head, eyes=eyes)
-        return write_glb(path, rig, animation, poses=poses)
+        return write_glb(path, rig, animation, poses=poses, colours=colours)
     if chosen is Format.USD:
         from .usd import animate_usd, write_usd
 

@@ -80,7 +80,8 @@ ANIMATION = ANIMATION_NAMES[0]
 # --------------------------------------------------------------------------- a new file
 
 
-def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -> Path:
+def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None,
+              colours: np.ndarray | None = None) -> Path:
     """Write a rig and its weight animation as a binary glTF 2.0 file, atomically.
 
     Parameters
@@ -99,6 +100,9 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
         Head pose per frame in image convention (2D or 3D rotations, ``n_frames`` as
         ``weights``); written as a ``rotation`` channel on the node. NaN frames hold the
         previous valid rotation (leading ones take the first valid; none at all: identity).
+    colours : (n_vertices, 3) float in [0, 1], optional
+        sRGB base colour per vertex, written as ``COLOR_0`` (linear, as glTF stores it) under a
+        white material.
 
     Returns
     -------
@@ -128,7 +132,11 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
         raise RigError("the rig has no morph targets to animate")
     check_poses(poses, weights)
     rotations = None if poses is None else pose_quaternions(poses)
-    return _save(path, _build_document(rig, weights, rotations))
+    if colours is not None:
+        colours = np.asarray(colours, dtype=float)
+        if colours.shape != (rig.n_vertices, 3) or not np.isfinite(colours).all():
+            raise InputError(f"colours must be finite with shape ({rig.n_vertices}, 3); got {colours.shape}")
+    return _save(path, _build_document(rig, weights, rotations, colours))
 
 
 def _check_suffix(path: Path) -> None:
@@ -143,7 +151,8 @@ def _save(path: Path, document: pygltflib.GLTF2) -> Path:
     return path
 
 
-def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) -> pygltflib.GLTF2:
+def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None,
+                    colours: np.ndarray | None = None) -> pygltflib.GLTF2:
     document = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="keyshape"),
         scene=0,
@@ -151,12 +160,13 @@ def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) ->
         nodes=[pygltflib.Node(name="face", mesh=0)],
     )
     blob = edit.Blob(document)
-    document.meshes.append(_mesh(blob, rig))
+    document.meshes.append(_mesh(blob, rig, colours))
+    base = [0.8, 0.8, 0.8, 1.0] if colours is None else [1.0, 1.0, 1.0, 1.0]
     document.materials.append(
         pygltflib.Material(
             name="face",
             pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                baseColorFactor=[0.8, 0.8, 0.8, 1.0], metallicFactor=0.0, roughnessFactor=0.7
+                baseColorFactor=base, metallicFactor=0.0, roughnessFactor=0.7
             ),
             doubleSided=True,
         )
@@ -171,15 +181,17 @@ def _build_document(rig: Rig, weights: Weights, rotations: np.ndarray | None) ->
     return document
 
 
-def _mesh(blob: edit.Blob, rig: Rig) -> pygltflib.Mesh:
+def _mesh(blob: edit.Blob, rig: Rig, colours: np.ndarray | None = None) -> pygltflib.Mesh:
     array_buffer, element_buffer = pygltflib.ARRAY_BUFFER, pygltflib.ELEMENT_ARRAY_BUFFER
     position = blob.add(rig.vertices.astype(np.float32), "VEC3", target=array_buffer, bounds=True)
     index_dtype = np.uint16 if rig.n_vertices < 65535 else np.uint32
     indices = blob.add(rig.faces.reshape(-1).astype(index_dtype), "SCALAR", target=element_buffer)
     targets = [{"POSITION": blob.add_target(delta)} for delta in rig.deltas]
-    primitive = pygltflib.Primitive(
-        attributes=pygltflib.Attributes(POSITION=position), indices=indices, material=0, targets=targets
-    )
+    attributes = pygltflib.Attributes(POSITION=position)
+    if colours is not None:  # glTF's COLOR_0 is linear: sRGB decoded (IEC 61966-2-1)
+        linear = np.where(colours <= 0.04045, colours / 12.92, ((np.clip(colours, 0, 1) + 0.055) / 1.055) ** 2.4)
+        attributes.COLOR_0 = blob.add(linear.astype(np.float32), "VEC3", target=array_buffer)
+    primitive = pygltflib.Primitive(attributes=attributes, indices=indices, material=0, targets=targets)
     return pygltflib.Mesh(
         name="face",
         primitives=[primitive],

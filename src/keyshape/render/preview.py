@@ -39,7 +39,7 @@ def rotations_from_quaternions(quaternions: np.ndarray) -> np.ndarray:
 def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None,
                    keys: KeyShapes | None = None, rig_weights: np.ndarray | None = None,
                    rotations: np.ndarray | None = None, height: int | None = None, strip_height: int = 96,
-                   backend: str = "auto", progress: bool = False) -> Path:
+                   backend: str = "auto", progress: bool = False, colours: np.ndarray | None = None) -> Path:
     """Write the preview MP4: source + landmarks | character, over a strip of the weights.
 
     Parameters
@@ -67,6 +67,8 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     backend : "auto", "gl" or "numpy", keyword-only
         See :func:`keyshape.render._backend.make_renderer`.
     progress : bool, keyword-only
+    colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
+        The character's colour per vertex (default: clay).
 
     Returns
     -------
@@ -84,7 +86,7 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     canvas = np.zeros((height + strip.height, width, 3), np.uint8)
     with (
         atomic_path(path) as tmp,
-        _CharacterView(rig, driving, rotations, height, backend) as character,
+        _CharacterView(rig, driving, rotations, height, backend, colours) as character,
         VideoWriter(tmp, width, height + strip.height, track.fps) as out,
     ):
         frames = _with_first(first, sources)
@@ -236,11 +238,13 @@ def _contour_edges(n_landmarks: int) -> np.ndarray | None:
 class _CharacterView:
     """Renders the rig posed at frame ``index`` from a fixed camera framing the whole take."""
 
-    def __init__(self, rig: Rig, weights: np.ndarray, rotations: np.ndarray, size: int, backend: str):
+    def __init__(self, rig: Rig, weights: np.ndarray, rotations: np.ndarray, size: int, backend: str,
+                 colours: np.ndarray | None = None):
         self.rig, self.weights, self.rotations = rig, weights, rotations
         self.camera = frame_points(self._pose(np.linspace(0, len(weights) - 1, 48).astype(int)),
                                    fov_deg=25.0, margin=1.12)
-        self.renderer = make_renderer(rig.faces, size, size, n_vertices=rig.n_vertices, backend=backend)
+        self.renderer = make_renderer(rig.faces, size, size, n_vertices=rig.n_vertices, backend=backend,
+                                      colours=colours)
 
     def _pose(self, frames: np.ndarray) -> np.ndarray:
         """Posed and rotated vertices ``(len(frames), n_vertices, 3)``."""

@@ -243,7 +243,20 @@ def _preview(outdir: Path, take: _Take, *, path=None, progress: bool, backend: s
     rotations = None if animation.rotations is None else rotations_from_quaternions(animation.rotations)
     return render_preview(take.track, take.weights, rig, path or outdir / "preview.mp4", video=take.video,
                           keys=take.keys, rig_weights=animation.weights[:, order], rotations=rotations,
-                          height=height, backend=backend, progress=progress)
+                          height=height, backend=backend, progress=progress, colours=_vertex_colours(glb, rig))
+
+
+def _vertex_colours(glb: Path, rig) -> np.ndarray | None:
+    """sRGB colours ``(n_vertices, 3)`` of a .glb whose mesh carries ``COLOR_0`` (the built-in head's), else None."""
+    from ..io.gltf import load_document, read_colours
+
+    document, _ = load_document(glb, editable=False)
+    if not any(getattr(p.attributes, "COLOR_0", None) is not None for m in document.meshes for p in m.primitives):
+        return None
+    linear = read_colours(glb)[:, :3]
+    if linear.shape != (rig.n_vertices, 3):
+        return None
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, 1) ** (1 / 2.4) - 0.055)
 
 
 def _stable(keys: KeyShapes) -> np.ndarray:

@@ -7,11 +7,12 @@
 * :func:`transfer_expressions` — the transfer itself (deformation transfer on the mesh);
 * :class:`Correspondence`, :func:`find_correspondence`, :func:`read_correspondence` — where the
   landmarks sit on the character (given in a file, or found on a render);
-* :func:`stylised_head`, :func:`default_character` — keyshape's built-in character;
+* :func:`stylised_head`, :func:`default_character` — keyshape's built-in character, and
+  :func:`with_gaze_targets` / :func:`gaze_weights` — its eyes turned by the gaze;
 * :func:`complete_mirrors` — mirrored keys' targets made from their sources' on a symmetric mesh.
 """
 
-from ._character import Character, canonical_face, stylised_head
+from ._character import GAZE_NAMES, Character, canonical_face, gaze_weights, stylised_head, with_gaze_targets
 from ._correspond import Correspondence, correspondence_from_dict, read_correspondence
 from ._correspond_auto import find_correspondence
 from ._mapping import Mapping, retarget
@@ -33,4 +34,5 @@ __all__ = ["Mapping", "retarget", "complete_mirrors", "mirror_sources",
            "resolve_correspondence",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
            "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",
-           "Character", "stylised_head", "canonical_face", "default_character"]
+           "Character", "stylised_head", "canonical_face", "default_character", "with_gaze_targets",
+           "gaze_weights", "GAZE_NAMES"]

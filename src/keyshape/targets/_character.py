@@ -11,7 +11,10 @@ random numbers and no file other than the vendored MediaPipe model:
    the chin and swells the cranium (each a Gaussian-weighted scaling about a feature centre);
 4. the face's outline is closed by a **cranium** of rings running to a pole at the back;
 5. two **Loop subdivisions** (Loop 1987) smooth it to about 11,000 vertices;
-6. **eyeballs** with a raised iris sit in the eye openings, as separate (rigid) components.
+6. **eyeballs** with a pupil and an iris sit in the eye openings, and a **mouth interior** (a dark
+   cavity, two rows of teeth, a tongue) behind the lips, which are closed at rest
+   (:mod:`keyshape.targets._head_parts`); each a separate component;
+7. **colours** per vertex: skin, lips, brows, hair, blush, eyes, teeth.
 
 Vertex ``i < 468`` of the result is MediaPipe landmark ``i`` (subdivision keeps the original
 vertices first), so the correspondence for MediaPipe key shapes is known by construction.
@@ -27,7 +30,7 @@ from __future__ import annotations
 
 import functools
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -36,8 +39,9 @@ from ..containers import Rig
 from ..exceptions import InputError
 from ..schemes import mediapipe_scheme
 from ._correspond import Correspondence
+from ._head_parts import GAZE_NAMES, eyeball, gaze_deltas, gaze_weights, mouth_parts, skin_colours
 
-__all__ = ["Character", "stylised_head"]
+__all__ = ["Character", "stylised_head", "with_gaze_targets", "gaze_weights", "GAZE_NAMES"]
 
 _N_FACE = 468
 _CM = 0.01
@@ -57,12 +61,22 @@ class Character:
         Vertex sets of the rigid parts (the eyeballs: separate components, which expression
         transfer leaves still).
     name : str
+    colours : (n_vertices, 3) float in [0, 1], optional
+        Base colour per vertex (sRGB).
+    parts : dict of str to (n_part,) int, optional
+        Named vertex sets: ``skin``, ``left_eye``, ``right_eye``, ``cavity``, ``upper_teeth``,
+        ``lower_teeth``, ``tongue``.
+    eye_centres : (2, 3) float, optional
+        Centres of the (left, right) eyeballs, about which the gaze turns them.
     """
 
     rig: Rig
     landmark_vertices: np.ndarray
     rigid: tuple
     name: str
+    colours: np.ndarray | None = None
+    parts: dict = field(default_factory=dict)
+    eye_centres: np.ndarray | None = None
 
     def correspondence(self, n_landmarks: int = 478) -> Correspondence:
         """Landmark ``i`` ↔ vertex ``landmark_vertices[i]``, for MediaPipe key shapes (468 or 478)."""
@@ -89,20 +103,67 @@ def stylised_head() -> Character:
     """
     vertices, faces = canonical_face()
     faces = _open_features(faces)
-    vertices = _caricature(vertices * _CM)
+    vertices = _close_mouth(_caricature(vertices * _CM))
     vertices, faces = _add_cranium(vertices, faces)
     for _ in range(2):
         vertices, faces = _loop_subdivide(vertices, faces)
     faces = _facing_outward(vertices, faces)
-    eyes = [_eyeball(vertices, side) for side in ("right_eye", "left_eye")]
-    parts, offset = [], len(vertices)
-    for eye_vertices, eye_faces in eyes:
-        parts.append(np.arange(offset, offset + len(eye_vertices)))
-        vertices = np.vstack([vertices, eye_vertices])
-        faces = np.vstack([faces, eye_faces + offset])
-        offset += len(eye_vertices)
-    rig = Rig(vertices, faces, np.zeros((0, len(vertices), 3)), ())
-    return Character(rig, np.arange(_N_FACE), tuple(parts), "stylised head")
+    n_skin = len(vertices)
+    scheme = mediapipe_scheme()
+    contours = {**scheme["contours"], **{f"{k}_edges": v for k, v in scheme["contour_edges"].items()}}
+    colours = skin_colours(vertices, faces, vertices[:_N_FACE], contours)
+    pieces, centres = {}, []
+    for side in ("left_eye", "right_eye"):
+        centre, radius = _eye_socket(vertices, side)
+        pieces[side] = eyeball(centre, radius)
+        centres.append(centre)
+    pieces.update(mouth_parts(vertices[_feature_loops()["mouth"]]))
+    parts = {"skin": np.arange(n_skin)}
+    all_vertices, all_faces, all_colours = [vertices], [faces], [colours]
+    offset = n_skin
+    for name, (part_vertices, part_faces, part_colours) in pieces.items():
+        parts[name] = np.arange(offset, offset + len(part_vertices))
+        all_vertices.append(part_vertices)
+        all_faces.append(part_faces + offset)
+        all_colours.append(part_colours)
+        offset += len(part_vertices)
+    vertices = np.vstack(all_vertices)
+    rig = Rig(vertices, np.vstack(all_faces), np.zeros((0, len(vertices), 3)), ())
+    return Character(rig, np.arange(_N_FACE), (parts["left_eye"], parts["right_eye"]), "stylised head",
+                     colours=np.clip(np.vstack(all_colours), 0, 1), parts=parts, eye_centres=np.array(centres))
+
+
+def with_gaze_targets(rig: Rig) -> Rig:
+    """The stylised head's rig (as :func:`keyshape.targets.default_character` makes it) with eight
+    more targets, :data:`GAZE_NAMES`, that turn its eyes (drive them with :func:`gaze_weights`)."""
+    head = stylised_head()
+    if rig.n_vertices != head.rig.n_vertices:
+        raise InputError(f"gaze targets are the stylised head's: a rig of {head.rig.n_vertices} vertices; "
+                         f"got {rig.n_vertices}")
+    deltas = gaze_deltas(head.rig.vertices, head.rigid, head.eye_centres)
+    return Rig(rig.vertices, rig.faces, np.concatenate([rig.deltas, deltas]), (*rig.names, *GAZE_NAMES))
+
+
+def _close_mouth(vertices: np.ndarray, *, gap: float = 0.0004, sigma: float = 0.006) -> np.ndarray:
+    """Bring the lips together at rest (the canonical face's are apart): the inner lip contour's
+    upper and lower halves meet ``gap`` apart, the skin around them following with Gaussian falloff."""
+    loop = np.asarray(_feature_loops()["mouth"])
+    inner = vertices[loop]
+    mid = float(np.median(inner[:, 1]))
+    upper, lower = inner[inner[:, 1] >= mid], inner[inner[:, 1] < mid]
+    upper, lower = upper[np.argsort(upper[:, 0])], lower[np.argsort(lower[:, 0])]
+    x = vertices[:, 0]
+    top, bottom = np.interp(x, upper[:, 0], upper[:, 1]), np.interp(x, lower[:, 0], lower[:, 1])
+    centre = (top + bottom) / 2
+    half = np.maximum(top - bottom - gap, 0) / 2
+    above = vertices[:, 1] >= centre
+    edge = np.where(above, top, bottom)
+    inside = np.abs(x) <= np.abs(inner[:, 0]).max()
+    reach = np.exp(-((vertices[:, 1] - edge) ** 2) / (2 * sigma**2)) * inside
+    reach *= np.exp(-np.maximum(inner[:, 2].min() - 0.01 - vertices[:, 2], 0) ** 2 / (2 * sigma**2))
+    moved = vertices.copy()
+    moved[:, 1] += np.where(above, -half, half) * reach
+    return moved
 
 
 def _loops(edges: list) -> list[list[int]]:
@@ -270,33 +331,9 @@ def _loop_subdivide(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
     return np.vstack([even, odd]), new_faces
 
 
-def _eyeball(vertices: np.ndarray, side: str, *, n_lat: int = 16, n_lon: int = 28):
-    """A sphere with a raised iris behind one eye opening: vertices ``(n, 3)``, faces ``(m, 3)``."""
-    loop = _feature_loops()[side]
-    rim = vertices[loop]
-    radius = 0.5 * np.ptp(rim[:, 0])
-    front = rim[:, 2].mean() - 0.08 * radius  # just behind the lids, which stay visible
-    centre = np.array([*rim[:, :2].mean(axis=0), front - radius * 1.06])
-    lat = np.linspace(0, np.pi, n_lat + 1)[1:-1]
-    lon = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
-    theta, phi = np.meshgrid(lat, lon, indexing="ij")
-    # the sphere's axis points forward (+Z): theta is the angle from the front
-    unit = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1).reshape(-1, 3)
-    unit = np.vstack([[0.0, 0.0, 1.0], unit, [0.0, 0.0, -1.0]])
-    bump = 1.0 + 0.06 * (np.arccos(np.clip(unit[:, 2], -1, 1)) < np.radians(24))
-    points = centre + radius * bump[:, None] * unit
-    faces = []
-
-    def ring(i):
-        return 1 + i * n_lon + np.arange(n_lon)
-
-    faces.append(np.stack([np.zeros(n_lon, int), ring(0), np.roll(ring(0), -1)], axis=1))
-    for i in range(n_lat - 2):
-        a, b = ring(i), ring(i + 1)
-        faces += [np.stack([a, b, np.roll(a, -1)], axis=1), np.stack([np.roll(a, -1), b, np.roll(b, -1)], axis=1)]
-    last, bottom = ring(n_lat - 2), len(points) - 1
-    faces.append(np.stack([last, np.full(n_lon, bottom), np.roll(last, -1)], axis=1))
-    faces = np.vstack(faces)
-    a, b, c = (points[faces[:, i]] for i in range(3))
-    inward = (np.cross(b - a, c - a) * ((a + b + c) / 3 - centre)).sum(axis=1) < 0
-    return points, np.where(inward[:, None], faces[:, [0, 2, 1]], faces)
+def _eye_socket(vertices: np.ndarray, side: str) -> tuple[np.ndarray, float]:
+    """Centre and radius of the eyeball behind one eye opening, just behind the lids."""
+    rim = vertices[_feature_loops()[side]]
+    radius = 0.5 * float(np.ptp(rim[:, 0]))
+    front = rim[:, 2].mean() - 0.08 * radius
+    return np.array([*rim[:, :2].mean(axis=0), front - radius * 1.06]), radius

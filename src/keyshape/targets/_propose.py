@@ -44,8 +44,9 @@ from ..exceptions import InputError, RigError
 from ._character import stylised_head
 from ._correspond import Correspondence, read_correspondence
 from ._correspond_auto import find_correspondence
+from ._head_parts import JAW_LANDMARKS, jaw_deltas
 from ._mapping import Mapping
-from ._transfer import landmark_motion, transfer_expressions
+from ._transfer import landmark_motion, spread, transfer_expressions
 
 __all__ = ["AutoTargets", "KeyScores", "auto_targets", "default_character", "propose_mapping", "propose_targets",
            "proposer", "resolve_correspondence"]
@@ -72,7 +73,7 @@ def resolve_correspondence(correspondence, rig: Rig, n_landmarks: int, *, front:
     found = find_correspondence(rig.vertices, rig.faces, front=front, colours=colours)
     keep = found.landmarks < n_landmarks
     return Correspondence(found.landmarks[keep], found.vertices[keep], found.weights[keep], n_landmarks,
-                          found.residual[keep])
+                          found.residual[keep], rest_scores=found.rest_scores)
 
 
 def _as_rig(character) -> Rig:
@@ -121,7 +122,55 @@ def default_character(keys: KeyShapes) -> Rig:
         ``names = keys.names``; drive it with :meth:`Mapping.by_name <keyshape.targets.Mapping.by_name>`.
     """
     head = stylised_head()
-    return propose_targets(keys, head.rig, correspondence=head.correspondence(keys.n_landmarks))
+    vertices, faces = head.rig.vertices, head.rig.faces
+    corr = head.correspondence(keys.n_landmarks)
+    field = spread(vertices, faces, corr, landmark_motion(keys, corr, vertices, faces))
+    field = _at_amplitude(keys, field, head.landmark_vertices, vertices)
+    return Rig(vertices, faces, _with_interior(head, field), keys.names)
+
+
+def _at_amplitude(keys: KeyShapes, field: np.ndarray, landmark_vertices: np.ndarray, vertices: np.ndarray, *,
+                  max_gain: float = 1.6) -> np.ndarray:
+    """Each key's field scaled, where it falls short, to move the key's landmarks as far as the actor's.
+
+    Amplitude is measured relative to face size (the RMS radius of the face's landmarks, in the
+    image plane, on each side): the per-feature rescaling of the transfer sizes the caricature's
+    small mouth's motion down with it (about 0.8-0.9 of the actor's on the demo's keys). The gain
+    per key is the least-squares ratio ``g = ⟨a, a⟩ / ⟨c, a⟩`` of the actor's landmark speeds
+    ``a`` to the character's ``c`` over the key's region, kept in ``[1, max_gain]`` (the big
+    eyes' larger motion is left as it is).
+    """
+    n = min(len(landmark_vertices), keys.n_landmarks)
+    actor = keys.neutral[:n, :2]
+    character = vertices[landmark_vertices[:n], :2]
+    radius_a = np.sqrt(((actor - actor.mean(axis=0)) ** 2).sum(axis=1).mean())
+    radius_c = np.sqrt(((character - character.mean(axis=0)) ** 2).sum(axis=1).mean())
+    gains = np.ones(keys.n_keys)
+    for k, region in enumerate(keys.key_regions):
+        ids = np.asarray(keys.regions[region])
+        ids = ids[ids < n]
+        a = np.linalg.norm(keys.deltas[k, ids, :2], axis=1) / radius_a
+        c = np.linalg.norm(field[k, landmark_vertices[ids], :2], axis=1) / radius_c
+        gains[k] = (a @ a) / max(float(c @ a), 1e-18)
+    return field * np.clip(gains, 1.0, max_gain)[:, None, None]
+
+
+def _with_interior(head, field: np.ndarray) -> np.ndarray:
+    """The head's deltas with its mouth interior following the jaw (the skin's and the eyes' as given)."""
+    jaw = np.asarray(JAW_LANDMARKS)
+    ids = head.landmark_vertices[jaw]
+    points, moving = head.rig.vertices[ids], field[:, ids]
+    out = field.copy()
+    for name in ("lower_teeth", "tongue"):
+        part = head.parts[name]
+        out[:, part] = jaw_deltas(head.rig.vertices[part], moving, points, np.ones(len(part)))
+    cavity = head.parts["cavity"]
+    y = head.rig.vertices[cavity, 1]
+    floor = np.clip((y.max() - y) / np.ptp(y) * 1.6 - 0.3, 0.0, 1.0)  # the roof stays, the floor follows
+    out[:, cavity] = jaw_deltas(head.rig.vertices[cavity], moving, points, floor)
+    for name in ("left_eye", "right_eye", "upper_teeth"):
+        out[:, head.parts[name]] = 0.0
+    return out
 
 
 GAZE_TARGETS = ("eyeLook*",)
@@ -247,17 +296,26 @@ def _score_channels(score_names, rig_names) -> np.ndarray:
 
 def _score_mapping(keys: KeyShapes, rig: Rig, corr: Correspondence, scores: KeyScores,
                    allowed: np.ndarray) -> Mapping:
-    """Gains ``s(key) − s(neutral)`` on the key's region's targets, offset ``s(neutral)``.
+    """Gains ``s(key) − s(neutral)`` on the key's region's targets, offset ``s(neutral) − s(rest)``.
 
     A target belongs to the region whose corresponded landmarks it moves most; targets no score
-    names (or ``allowed`` excludes) stay undriven.
+    names (or ``allowed`` excludes) stay undriven. ``s(rest)`` is how the tracker reads the
+    character itself at rest (``corr.rest_scores``, from the render the correspondence was found
+    on; zero when unknown): a character whose brows MediaPipe reads as raised at rest needs less
+    brow raise to look like the actor's neutral. On the rendered ICT loop this takes the error
+    from 34.8 % to 24 % (BENCHMARKS.md).
     """
     table = _score_channels(scores.names, rig.names) * allowed[:, None]
     neutral = np.clip(table @ np.nan_to_num(np.asarray(scores.neutral, dtype=float)), 0, 1)
+    rest = getattr(corr, "rest_scores", None)
+    if rest:
+        at_rest = np.array([float(rest.get(n, 0.0)) for n in scores.names])
+        neutral = np.clip(neutral - np.clip(table @ at_rest, 0, 1), 0, 1)
     at_keys = np.clip(np.nan_to_num(np.asarray(scores.keys, dtype=float)) @ table.T, 0, 1)  # (n_keys, n_targets)
     region = _target_regions(keys, rig, corr)
     own = region[:, None] == np.asarray(keys.key_regions)[None, :]  # (n_targets, n_keys)
-    gains = np.where(own, at_keys.T - neutral[:, None], 0.0)
+    base = np.clip(table @ np.nan_to_num(np.asarray(scores.neutral, dtype=float)), 0, 1)
+    gains = np.where(own, np.maximum(at_keys.T - base[:, None], -neutral[:, None]), 0.0)
     return Mapping(gains, keys.names, rig.names, offset=neutral)
 
 
@@ -424,7 +482,10 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         mapping = propose_mapping(keys, character, correspondence=corr, normalize=normalize, scores=scores,
                                   exclude=exclude)
         return AutoTargets(character, mapping, "mapping", corr)
-    proposed = propose_targets(keys, character, correspondence=corr, rigid=rigid, falloff=falloff)
+    if rig is None and correspondence is None and falloff == 1.0:
+        proposed = default_character(keys)  # with its mouth interior following the jaw
+    else:
+        proposed = propose_targets(keys, character, correspondence=corr, rigid=rigid, falloff=falloff)
     return AutoTargets(proposed, Mapping.by_name(keys.names, proposed.names), "transfer", corr)
 
 
