@@ -183,7 +183,9 @@ def test_demo_take_end_to_end(demo_out, tmp_path):
     result = write_take_extras(tmp_path, progress=False, preview=False)  # keeps the demo's preview
     numbers = result.numbers
     assert numbers["frames"] == 472 and numbers["detection_rate"] >= 95
-    assert {r: v["keys"] for r, v in numbers["regions"].items()} == {"upper": 8, "lower": 8}
+    shown = load_keys(tmp_path / "keys.json")
+    assert {r: v["keys"] for r, v in numbers["regions"].items()} == {r: len(shown.keys_of(r)) for r in shown.regions}
+    assert {r: int((~shown.mirrored[shown.keys_of(r)]).sum()) for r in shown.regions} == {"upper": 8, "lower": 8}
     assert all(v["rms_error"] < 5 for v in numbers["regions"].values())  # % inter-ocular distance
     frames, rate, count = decode(result.preview)
     assert count == len(frames) == 472 and rate == pytest.approx(24000 / 1001, abs=1e-3)
