@@ -61,8 +61,12 @@ def test_demo_glb_is_valid_and_animated(demo_out):
     assert report["numErrors"] == 0, report["messages"][:5]
     anim = read_glb_animation(demo_out / "animation.glb")
     weights = load_weights_csv(demo_out / "weights.csv")
-    assert tuple(anim.names) == weights.names
-    np.testing.assert_allclose(anim.weights, np.nan_to_num(weights.values), atol=1e-6)
+    assert report["numWarnings"] == 0, report["messages"][:5]
+    from keyshape.targets import GAZE_NAMES
+
+    assert tuple(anim.names) == (*weights.names, *GAZE_NAMES)  # the built-in head's eyes follow the gaze
+    np.testing.assert_allclose(anim.weights[:, :weights.n_channels], np.nan_to_num(weights.values), atol=1e-6)
+    assert anim.weights[:, weights.n_channels:].max() > 0.05
     assert anim.rotations is not None and len(anim.rotations) == 472
     assert anim.times[-1] == pytest.approx(471 / 23.976, rel=1e-4)
 

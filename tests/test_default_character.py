@@ -1,0 +1,137 @@
+"""The built-in stylised head as a user first sees it: eyes that follow the gaze, lids that close, a
+mouth interior hidden at rest and shown with the jaw open, colours, and a head that turns in the
+preview."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_transfer import head_keys
+
+from keyshape.containers import KeyShapes
+from keyshape.render import make_renderer
+from keyshape.render.camera import frame_points
+from keyshape.targets import GAZE_NAMES, default_character, gaze_weights, stylised_head, with_gaze_targets
+
+# upper lid -> lower lid landmarks of both eyes (MediaPipe)
+LIDS = {159: 145, 158: 153, 160: 144, 157: 154, 161: 163, 386: 374, 385: 380, 387: 373, 384: 381, 388: 390}
+JAW = (14, 87, 178, 88, 95, 317, 402, 318, 324, 17, 84, 181, 91, 146, 314, 405, 321, 375, 152, 148, 176, 377,
+       400, 199, 175, 200, 18)
+INTERIOR = ("cavity", "upper_teeth", "lower_teeth", "tongue")
+
+
+@pytest.fixture(scope="module")
+def head():
+    return stylised_head()
+
+
+@pytest.fixture(scope="module")
+def keys(head) -> KeyShapes:
+    """A blink (upper lids onto the lower lids) and a jaw opening of 12 mm, on an actor shaped like the head."""
+    points = head.rig.vertices[head.landmark_vertices]
+    blink = {upper: points[lower] - points[upper] for upper, lower in LIDS.items()}
+    jaw = {i: [0.0, -0.012, -0.002] for i in JAW}
+    upper = head_keys(head, {"blink": blink}, region="upper")
+    lower = head_keys(head, {"jaw": jaw}, region="lower")
+    return KeyShapes(upper.neutral, np.concatenate([upper.deltas, lower.deltas]), ("blink", "jaw"), [0, 1],
+                     ("upper", "lower"), upper.regions)
+
+
+@pytest.fixture(scope="module")
+def rig(keys):
+    return with_gaze_targets(default_character(keys))
+
+
+def _render(head, vertices, colours, size=400):
+    camera = frame_points(head.rig.vertices, fov_deg=25.0, margin=1.12)
+    with make_renderer(head.rig.faces, size, size, n_vertices=head.rig.n_vertices, colours=colours) as renderer:
+        return renderer.render(vertices, camera)
+
+
+def _pose(rig, **weights):
+    values = np.zeros(rig.n_targets)
+    for name, value in weights.items():
+        values[rig.names.index(name)] = value
+    return rig.pose(values[None])[0]
+
+
+def test_irises_turn_with_the_gaze(head, rig):
+    """eyeLookOut of the left eye (at +x) turns its pupil toward +x by the target's 30 degrees."""
+    pupil = head.parts["left_eye"][0]  # the front pole: the pupil's centre
+    centre = head.eye_centres[0]
+    rest = rig.vertices[pupil] - centre
+    turned = _pose(rig, eyeLookOutLeft=1.0)[pupil] - centre
+    angle = np.degrees(np.arctan2(turned[0], turned[2]) - np.arctan2(rest[0], rest[2]))
+    assert angle == pytest.approx(30.0, abs=1.0)
+    up = _pose(rig, eyeLookUpRight=1.0)[head.parts["right_eye"][0]] - head.eye_centres[1]
+    assert up[1] > rest[1] + 0.4 * np.linalg.norm(rest)  # looks up
+    assert np.allclose(_pose(rig, eyeLookOutLeft=1.0)[head.parts["skin"]], rig.vertices[head.parts["skin"]])
+
+
+def test_gaze_weights_follow_the_tracked_angles():
+    # columns (right eye, left eye); yaw > 0 toward the character's +x (its left), pitch > 0 up
+    weights = gaze_weights(np.array([[15.0, 15.0], [0.0, 0.0]]), np.array([[0.0, 0.0], [-30.0, np.nan]]))
+    named = dict(zip(GAZE_NAMES, weights[0]))
+    assert named["eyeLookOutLeft"] == pytest.approx(0.5) and named["eyeLookInRight"] == pytest.approx(0.5)
+    assert named["eyeLookInLeft"] == 0 and named["eyeLookOutRight"] == 0
+    assert dict(zip(GAZE_NAMES, weights[1]))["eyeLookDownRight"] == pytest.approx(1.0)
+    assert weights[1].sum() == pytest.approx(1.0)  # NaN: no turn
+
+
+def test_lids_close_on_a_blink_key(head, keys, rig):
+    ids = head.landmark_vertices
+    posed = _pose(rig, blink=1.0)
+    upper, lower = ids[list(LIDS)], ids[list(LIDS.values())]
+    open_gap = np.linalg.norm(rig.vertices[upper] - rig.vertices[lower], axis=1)
+    closed_gap = np.linalg.norm(posed[upper] - posed[lower], axis=1)
+    assert (closed_gap < 0.15 * open_gap).all(), closed_gap / open_gap
+    # and the eyes are covered: the render shows (almost) no eyeball
+    colours = np.tile([0.9, 0.7, 0.6], (rig.n_vertices, 1))
+    colours[np.concatenate([head.parts["left_eye"], head.parts["right_eye"]])] = [0.0, 1.0, 0.0]
+    shown = [_marked(_render(head, v, colours)) for v in (rig.vertices, posed)]
+    assert shown[0] > 400 and shown[1] < 0.1 * shown[0], shown
+
+
+def _marked(image: np.ndarray) -> int:
+    """Pixels of the marker colour (pure green, shaded)."""
+    r, g, b = (image[..., i].astype(int) for i in range(3))
+    return int(((g > 60) & (g > 3 * r) & (g > 3 * b)).sum())
+
+
+def test_the_mouth_interior_is_hidden_at_rest_and_shown_with_the_jaw_open(head, rig):
+    colours = np.tile([0.9, 0.7, 0.6], (rig.n_vertices, 1))
+    colours[np.concatenate([head.parts[p] for p in INTERIOR])] = [0.0, 1.0, 0.0]
+    at_rest = _marked(_render(head, rig.vertices, colours))
+    opened = _marked(_render(head, _pose(rig, jaw=1.0), colours))
+    assert at_rest < 0.05 * opened and opened > 300, (at_rest, opened)  # at rest: the lip line only
+    # the lower teeth and the tongue go down with the jaw, the upper teeth stay
+    jaw = rig.deltas[rig.names.index("jaw")]
+    assert jaw[head.parts["lower_teeth"], 1].mean() < -0.008
+    assert np.abs(jaw[head.parts["upper_teeth"]]).max() == 0
+
+
+def test_the_head_is_coloured_and_symmetric(head):
+    from keyshape.mesh import mirror_map
+
+    colours = head.colours
+    assert colours.shape == (head.rig.n_vertices, 3) and (colours >= 0).all() and (colours <= 1).all()
+    assert len(np.unique(np.round(colours, 2), axis=0)) > 50  # skin, lips, brows, hair, eyes, teeth
+    mirror, normal = mirror_map(head.rig.vertices)
+    assert abs(normal[0]) > 0.99  # the plane x = 0
+    reflected = head.rig.vertices[mirror] * [-1, 1, 1]
+    assert np.median(np.linalg.norm(reflected - head.rig.vertices, axis=1)) < 1e-4  # (the skin within 3 mm)
+    assert np.abs(colours[mirror] - colours).mean() < 0.01  # colours mirror too (lips' edge within a few vertices)
+
+
+def test_the_head_turns_in_the_preview(rig):
+    from scipy.spatial.transform import Rotation
+
+    from keyshape.render.preview import _CharacterView
+
+    weights = np.zeros((2, rig.n_targets))
+    rotations = Rotation.from_euler("y", [[0.0], [35.0]], degrees=True).as_matrix()
+    with _CharacterView(rig, weights, rotations, 200, "auto", stylised_head().colours) as view:
+        still, turned = view(0), view(1)
+    face = [np.argwhere((image[30:].astype(int) - image[-1, 0]).any(axis=2)) for image in (still, turned)]
+    assert np.abs(still.astype(int) - turned.astype(int)).mean() > 5
+    assert abs(face[1][:, 1].mean() - face[0][:, 1].mean()) > 3  # the head's picture moves as it turns
