@@ -65,6 +65,10 @@ class Correspondence:
         Found automatically: how far each point lies, on the render it was found on, from where the
         tracker put its landmark, in picture widths (0 where the landmark's pixel was on the surface;
         more where it had to move onto a usable part). None for given correspondences.
+    rest_scores : dict str -> float or None
+        Found automatically: MediaPipe's ARKit scores of the character's neutral on that render
+        (how the tracker reads the character at rest; the score-based mapping subtracts them, see
+        :func:`keyshape.targets._propose._score_mapping`). Kept in the JSON file.
 
     Examples
     --------
@@ -78,6 +82,7 @@ class Correspondence:
     weights: np.ndarray
     n_landmarks: int
     residual: np.ndarray | None = None
+    rest_scores: dict | None = None
 
     def __post_init__(self):
         landmarks = np.asarray(self.landmarks, dtype=np.int64).reshape(-1)
@@ -102,6 +107,11 @@ class Correspondence:
                 value.flags.writeable = False
             object.__setattr__(self, name, value)
         object.__setattr__(self, "n_landmarks", n)
+        if self.rest_scores is not None:
+            scores = {str(k): float(v) for k, v in dict(self.rest_scores).items()}
+            if not all(np.isfinite(v) for v in scores.values()):
+                raise InputError("rest_scores must be finite numbers")
+            object.__setattr__(self, "rest_scores", scores)
 
     n_corr = property(lambda self: len(self.landmarks))
 
@@ -170,6 +180,8 @@ class Correspondence:
         document = {"format": FORMAT, "version": 1, "n_landmarks": self.n_landmarks, "landmarks": entries}
         if self.residual is not None:
             document["quality"] = self.quality()  # for the report and the reader; ignored when read back
+        if self.rest_scores is not None:
+            document["rest_scores"] = {k: round(v, 6) for k, v in self.rest_scores.items()}
         return document
 
     def save(self, path) -> Path:
@@ -247,7 +259,12 @@ def correspondence_from_dict(data, vertices: np.ndarray, faces: np.ndarray, *,
     if not landmarks:
         raise InputError("the correspondence names no landmarks")
     n = int(n) if n is not None else max(landmarks) + 1
-    return Correspondence(landmarks, np.array(triangles), np.array(weights), n).check(len(vertices))
+    rest = data.get("rest_scores") if isinstance(data, dict) else None
+    if rest is not None and (not isinstance(rest, dict)
+                             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rest.values())):
+        raise InputError("\"rest_scores\" must map score names to numbers")
+    return Correspondence(landmarks, np.array(triangles), np.array(weights), n,
+                          rest_scores=rest).check(len(vertices))
 
 
 def _entries(data) -> tuple[dict, int | None]:

@@ -5,6 +5,8 @@ The third way to a :class:`~keyshape.targets.Correspondence` (see ``_correspond`
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from ..defaults import FRONTS
@@ -69,7 +71,7 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
     for axis, up in views:
         vertices_turned = np.asarray(vertices, dtype=float) @ view_rotation(axis, up).T
         camera = frame_points(vertices_turned, margin=1.05)
-        found = _detect(_render(vertices_turned, faces, camera, size, backend, colours))
+        found, scores = _detect(_render(vertices_turned, faces, camera, size, backend, colours))
         if found is not None:
             break
     else:
@@ -79,10 +81,12 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
                        "axis, or give the correspondence as a JSON file (--correspondence)")
     vertices = vertices_turned
     camera = _face_camera(vertices, camera, found, size)
-    closer = _detect(_render(vertices, faces, camera, size, backend, colours))
+    closer, closer_scores = _detect(_render(vertices, faces, camera, size, backend, colours))
     landmarks = closer if closer is not None else found
+    scores = closer_scores if closer is not None else scores
     camera = camera if closer is not None else frame_points(vertices, margin=1.05)
-    return _surface_points(landmarks[:, :2], vertices, faces, camera, size)
+    corr = _surface_points(landmarks[:, :2], vertices, faces, camera, size)
+    return dataclasses.replace(corr, rest_scores=scores)
 
 
 def view_rotation(front: str, up: str) -> np.ndarray:
@@ -132,13 +136,18 @@ def _render(vertices, faces, camera, size: int, backend: str, colours=None) -> n
     return picture
 
 
-def _detect(picture: np.ndarray) -> np.ndarray | None:
-    """MediaPipe's landmarks ``(478, 3)`` in pixels on one picture, or None (a fresh landmarker each time)."""
+def _detect(picture: np.ndarray) -> tuple[np.ndarray | None, dict | None]:
+    """MediaPipe's landmarks ``(478, 3)`` in pixels on one picture and its ARKit scores by name, or
+    (None, None) (a fresh landmarker each time)."""
     from ..capture.mediapipe import MediaPipeTracker
 
     with MediaPipeTracker() as tracker:
         faces = tracker.detect(picture, 0)
-    return faces[0].points if faces else None
+        names = tracker.blendshape_names
+    if not faces:
+        return None, None
+    scores = dict(zip(names, np.asarray(faces[0].scores, dtype=float).tolist())) if names else None
+    return faces[0].points, scores
 
 
 def _face_camera(vertices, camera, landmarks: np.ndarray, size: int):
