@@ -6,9 +6,10 @@
 2. **Video.** Each frame is rendered by keyshape's own renderer (OpenGL on EGL), coloured so the
    tracker sees a face (skin, lips, brows, lashes, irises, teeth; ICT's translucent eye overlays
    left out), and written to an H.264 MP4.
-3. **The route under test.** ``keyshape run VIDEO --rig ICT/ --auto-targets`` (through
-   :func:`keyshape.app.run_take`): the real MediaPipe tracks the video, key shapes are found, weights
-   solved, and the key → ICT-shape mapping proposed on the rig's own render.
+3. **The route under test.** ``keyshape run VIDEO --rig ict.glb --auto-targets`` (through
+   :func:`keyshape.app.run_take`), ``ict.glb`` being ICT as a user's file holds it: its colours
+   (COLOR_0), no translucent overlays. The real MediaPipe tracks the video, key shapes are found,
+   weights solved, and the key → ICT-shape mapping proposed on the rig's own render, as it looks.
 4. **Scores**, as mean vertex error over the mean displacement from neutral (100 % = a frozen
    face), on ICT's face area and on its upper (brows, eyes) and lower (nose tip down) halves:
 
@@ -223,7 +224,7 @@ def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = Non
 
     Returns ``{"ICT": Loop}`` and, with ``second_head``, ``"caricature"`` too.
     """
-    from keyshape.io import load_rig, load_track, save_obj_folder
+    from keyshape.io import load_rig, load_track
 
     start = time.perf_counter()
     rig = load_rig(rig_folder, unit=0.01)
@@ -231,14 +232,26 @@ def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = Non
     source = load_track(performance) if performance else _demo_track(out)
     truth = truth_from_scores(source.blendshapes, source.blendshape_names, rig.names)
     rotations = head_rotations(source.head_matrix)
-    video = render_video(rig, truth, rotations, out / "ict.mp4", source.fps, ict_colours(rig.vertices, landmarks))
-    loops = {"ICT": _run_and_score(video, rig_folder, rig, landmarks, truth, out / "run", start)}
+    colours = ict_colours(rig.vertices, landmarks)
+    video = render_video(rig, truth, rotations, out / "ict.mp4", source.fps, colours)
+    character = as_it_looks(rig, colours, out / "ict.glb")
+    loops = {"ICT": _run_and_score(video, character, rig, landmarks, truth, out / "run", start)}
     if second_head:
         start = time.perf_counter()
         other = caricature(rig, landmarks)
-        folder = save_obj_folder(other, out / "caricature")
-        loops["caricature"] = _run_and_score(video, folder, other, landmarks, truth, out / "run_caricature", start)
+        character = as_it_looks(other, colours, out / "caricature.glb")
+        loops["caricature"] = _run_and_score(video, character, other, landmarks, truth, out / "run_caricature", start)
     return loops
+
+
+def as_it_looks(rig, colours: np.ndarray, path: Path) -> Path:
+    """The rig as a user's file would hold it: a .glb with its colours (COLOR_0) and without the
+    translucent eye overlays, so ``--auto-targets`` renders the character as it looks."""
+    from keyshape.containers import Rig, Weights
+    from keyshape.io.gltf import write_glb
+
+    shown = Rig(rig.vertices, rendered_faces(rig.faces), rig.deltas, rig.names)
+    return write_glb(path, shown, Weights(np.zeros((0, rig.n_targets)), rig.names, 30.0), colours=colours)
 
 
 def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndarray, run: Path, start: float) -> Loop:
