@@ -319,9 +319,12 @@ def _save_screenshot(page, name: str) -> Path:
 def test_viewer_on_the_demo(browser, demo_take, record_property):
     """Play, scrub, step: the character's morph influences are the weights.csv row of the frame
     shown, its head the .glb's rotation there, and the video shows that very frame."""
+    from keyshape.targets import GAZE_NAMES
+
     names, csv = _csv_weights(demo_take)
     anim = read_glb_animation(demo_take / "animation.glb")
-    assert list(anim.names) == names
+    assert list(anim.names) == [*names, *GAZE_NAMES]  # the built-in head's eyes: its gaze targets
+    names, csv = list(anim.names), np.hstack([csv, anim.weights[:, len(names):]])
     info = json.loads((demo_take / "take.json").read_text())
     with _Served(demo_take) as server:
         page = _open(browser, server.url)

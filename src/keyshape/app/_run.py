@@ -201,14 +201,15 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
 
 def _default_character_extras(anim, gaze):
     """The built-in head's animation with its gaze targets driven by ``gaze`` (if any), and its colours."""
-    from ..containers import Weights
+    import dataclasses
+
     from ..targets import GAZE_NAMES, gaze_weights, stylised_head
 
     values = np.array(anim.values, dtype=float)
     if gaze is not None:
         columns = [anim.names.index(n) for n in GAZE_NAMES]
         values[:, columns] = gaze_weights(gaze.yaw, gaze.pitch)
-    return Weights(values, anim.names, fps=anim.fps), stylised_head().colours
+    return dataclasses.replace(anim, values=values), stylised_head().colours  # frame_index, time kept
 
 
 def _mirrors_made(rig: Rig, keys: KeyShapes, source: Path) -> bool:
