@@ -260,8 +260,9 @@ def correspondence_from_dict(data, vertices: np.ndarray, faces: np.ndarray, *,
         raise InputError("the correspondence names no landmarks")
     n = int(n) if n is not None else max(landmarks) + 1
     rest = data.get("rest_scores") if isinstance(data, dict) else None
-    if rest is not None and (not isinstance(rest, dict)
-                             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rest.values())):
+    numbers = isinstance(rest, dict) and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                             for v in rest.values())
+    if rest is not None and not numbers:
         raise InputError("\"rest_scores\" must map score names to numbers")
     return Correspondence(landmarks, np.array(triangles), np.array(weights), n,
                           rest_scores=rest).check(len(vertices))
