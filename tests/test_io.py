@@ -82,10 +82,10 @@ def test_not_a_key_file(tmp_path):
 
 
 def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
-    def boom(value):
+    def boom(*args):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr("keyshape.io.weights_csv._cell", boom)
+    monkeypatch.setattr("keyshape.io.weights_csv._rows", boom)
     w = Weights(np.zeros((2, 1)), ("a",), 30)
     with pytest.raises(RuntimeError):
         save_weights_csv(w, tmp_path / "w.csv")

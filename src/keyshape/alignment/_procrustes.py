@@ -170,11 +170,19 @@ def align(
     return track.with_points(_to_canonical(track.points, poses)), poses
 
 
+_CHUNK = 2048  # frames transformed at a time: the temporaries stay in cache
+
+
 def _to_canonical(points: np.ndarray, poses: Poses) -> np.ndarray:
     """Invert the poses: ``Rᵀ (x - t) / s`` for points ``(n_frames, n_points, d)``."""
-    # f: frame, p: point, i/j: dimension; Rᵀ is "fji"
-    shifted = points - poses.translations[:, None, :]
-    return np.einsum("fji,fpj->fpi", poses.rotations, shifted) / poses.scales[:, None, None]
+    # f: frame, p: point, i/j: dimension. Rᵀ (x - t) per point is the row (x - t) @ R:
+    # out[f, p, i] = Σ_j (x[f, p, j] - t[f, j]) · R[f, j, i] / s[f], one batched matmul per chunk
+    scaled = poses.rotations / poses.scales[:, None, None]
+    out = np.empty(points.shape, dtype=np.result_type(points.dtype, scaled.dtype))
+    for lo in range(0, len(points), _CHUNK):
+        hi = lo + _CHUNK
+        np.matmul(points[lo:hi] - poses.translations[lo:hi, None, :], scaled[lo:hi], out=out[lo:hi])
+    return out
 
 
 def _check_reference(track: Track, reference) -> np.ndarray:

@@ -9,7 +9,10 @@ from deep inside the numerics.
 
 from __future__ import annotations
 
+import csv
+import io
 import math
+import re
 import struct
 from pathlib import Path
 
@@ -239,6 +242,49 @@ def check_weights_table(path, rows: list[list[str]]) -> tuple[list[str], np.ndar
     table = np.array([_weights_row(path, line, row, names) for line, row in body], dtype=float)
     _check_increasing_column(path, "frame", table[:, 0], [line for line, _ in body])
     _check_increasing_column(path, "time", table[:, 1], [line for line, _ in body])
+    return names, table
+
+
+def check_weights_text(path, text: str) -> tuple[list[str], np.ndarray]:
+    """:func:`check_weights_table` on a whole weights CSV's text, at numpy speed: a plain file (no
+    quotes or spaces, every row complete and valid) is parsed and checked at once; anything else
+    is read by the ``csv`` module and checked row by row, so its message is the same."""
+    table = _plain_weights_table(text)
+    if table is not None:
+        return table
+    try:
+        rows = list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error as exc:
+        raise InputError(f"{path}: not a readable CSV file ({exc.__class__.__name__})") from None
+    return check_weights_table(path, rows)
+
+
+_PLAIN = re.compile(r"[0-9.,+\-eE\n]*")  # numbers and separators only: no quotes, spaces, 'nan' or 'inf'
+
+
+def _plain_weights_table(text: str) -> tuple[list[str], np.ndarray] | None:
+    """(names, table) of a weights CSV that passes every check, else None (for the row-by-row path)."""
+    head, _, body = text.replace("\r\n", "\n").partition("\n")
+    names = head.split(",")[2:]
+    if head.split(",")[:2] != ["frame", "time"] or not names or len(set(names)) != len(names) \
+            or not all(n.strip() == n and n and '"' not in n for n in names) or not _PLAIN.fullmatch(body):
+        return None
+    body = "\n".join(line for line in body.split("\n") if line)  # blank lines are no rows
+    if not body or any(line.count(",") != len(names) + 1 for line in body.split("\n")):
+        return None
+    for _ in range(2):  # empty cells -> nan (twice: runs of them share their commas)
+        body = body.replace(",,", ",nan,")
+    body = body.replace(",\n", ",nan\n") + ("nan" if body.endswith(",") else "")
+    try:
+        table = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=2)
+    except ValueError:
+        return None
+    frames, times, values = table[:, 0], table[:, 1], table[:, 2:]
+    if not np.isfinite(table[:, :2]).all() or (frames < 0).any() or (frames != np.round(frames)).any() \
+            or (np.diff(frames) <= 0).any() or (np.diff(times) <= 0).any():
+        return None
+    if ((values < 0) | (values > MAX_WEIGHT)).any():  # NaN (empty) compares False
+        return None
     return names, table
 
 
