@@ -33,6 +33,7 @@ from ..containers import KeyShapes, Track, Weights
 from ..exceptions import InputError
 from ._nnls import nnls_gram
 from ._spacetime import spacetime_gram
+from ._weighted import coordinate_weights, solve_weighted
 
 __all__ = ["solve_nnls", "solve_spacetime", "solve_weights", "check_upper"]
 
@@ -211,7 +212,7 @@ def solve_weights(
         ks = keys.keys_of(region)
         if len(ks):
             A, B = _region_system(track, keys, landmarks, ks)
-            values[:, ks] = _solve_region(A, B, upper[ks], smoothness, bool(convex), tol)
+            values[:, ks] = _solve_seen(A, B, track, landmarks, upper[ks], smoothness, bool(convex), tol)
     if smoothness == 0.0:
         values[~track.valid] = np.nan
     return Weights(values, keys.names, track.fps, track.frame_index, track.time)
@@ -223,6 +224,15 @@ def _region_system(track, keys, landmarks, ks):
     A = keys.deltas[np.ix_(ks, landmarks)].reshape(len(ks), -1).T
     B = (track.points[:, landmarks] - keys.neutral[landmarks]).reshape(track.n_frames, -1)
     return A, B
+
+
+def _solve_seen(A, B, track, landmarks, upper, smoothness, convex, tol):
+    """One region's weights; hidden landmarks (``track.visibility`` < 1) weighted down (:mod:`._weighted`)."""
+    if track.visibility is None or (track.visibility[:, landmarks] >= 1.0).all():
+        return _solve_region(A, B, upper, smoothness, convex, tol)  # all seen: the unweighted fast path
+    weight = coordinate_weights(track.visibility[:, landmarks], track.n_dims)
+    return solve_weighted(A, B, weight, lambda b: _solve_region(A, b, upper, smoothness, convex, tol),
+                          smoothness=smoothness, upper=upper, convex=convex)
 
 
 def _solve_region(A, B, upper, smoothness, convex, tol=1e-7):
