@@ -103,7 +103,7 @@ class Track:
     visibility: np.ndarray | None = None
 
     def __post_init__(self):
-        points = np.asarray(self.points, dtype=float)
+        points = np.array(self.points, dtype=float)  # our own copy, frozen below
         if points.ndim != 3 or points.shape[2] not in (2, 3):
             raise InputError(
                 f"points must have shape (n_frames, n_landmarks, 2 or 3); got {points.shape}"
@@ -113,7 +113,6 @@ class Track:
             raise InputError(f"fps must be a positive number; got {self.fps!r}")
         # A frame is either fully present or fully missing; inf is missing as NaN is.
         partial = ~np.isfinite(points).all(axis=(1, 2))
-        points = points.copy()
         points[partial] = np.nan
         object.__setattr__(self, "points", _frozen(points))
         object.__setattr__(self, "fps", fps)

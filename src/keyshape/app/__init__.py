@@ -10,40 +10,30 @@
 * :class:`KeyShapeModel` — the scikit-learn style estimator over the same functions.
 """
 
-from ._batch import (
-    VIDEO_SUFFIXES,
-    BatchRow,
-    SequentialRunner,
-    batch,
-    find_takes,
-    format_table,
-    is_complete,
-    make_runner,
-    write_summary,
-)
-from ._model import KeyShapeModel
-from ._pipeline import (
-    Coverage,
-    Solved,
-    arkit_scores,
-    coverage,
-    discover_keys,
-    extend_keys,
-    fit_errors,
-    head_and_gaze,
-    head_poses,
-    key_scores,
-    solve_take,
-)
-from ._ray import RayRunner, ray_available
-from ._run import OUTPUT_FILES, RunOptions, TakeSummary, run_take
-from ._sculpt import SculptKit, check_kit_folder, contact_sheet, sculpt_targets, write_sculpt_kit
+from importlib import import_module
 
-__all__ = ["discover_keys", "extend_keys", "coverage", "Coverage",
-           "solve_take", "Solved", "fit_errors", "head_poses", "head_and_gaze", "arkit_scores",
-           "key_scores",
-           "run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES",
-           "batch", "BatchRow", "find_takes", "format_table", "is_complete", "make_runner", "VIDEO_SUFFIXES",
-           "write_summary", "SequentialRunner", "RayRunner", "ray_available",
-           "write_sculpt_kit", "check_kit_folder", "sculpt_targets", "contact_sheet", "SculptKit",
-           "KeyShapeModel"]
+# Each name is imported from its module on first use, so a verb loads only the stages it runs
+# (``keyshape solve`` needs _pipeline, not batch, Ray, rendering or the sculpt kit).
+_LAZY = {
+    **dict.fromkeys(("discover_keys", "extend_keys", "coverage", "Coverage", "solve_take", "Solved",
+                     "fit_errors", "head_poses", "head_and_gaze", "arkit_scores", "key_scores"), "_pipeline"),
+    **dict.fromkeys(("run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES"), "_run"),
+    **dict.fromkeys(("batch", "BatchRow", "find_takes", "format_table", "is_complete", "make_runner",
+                     "VIDEO_SUFFIXES", "write_summary", "SequentialRunner"), "_batch"),
+    **dict.fromkeys(("RayRunner", "ray_available"), "_ray"),
+    **dict.fromkeys(("write_sculpt_kit", "check_kit_folder", "sculpt_targets", "contact_sheet", "SculptKit"),
+                    "_sculpt"),
+    "KeyShapeModel": "_model",
+}
+
+__all__ = [*_LAZY]  # noqa: PLE0604 - the names come from __getattr__
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module 'keyshape.app' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted({*globals(), *_LAZY})

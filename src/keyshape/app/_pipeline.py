@@ -312,28 +312,35 @@ def arkit_scores(track: Track, *, source: str | Path = "track") -> Weights:
                    track.frame_index, track.time)
 
 
-def key_scores(keys: KeyShapes, track: Track):
+def key_scores(keys: KeyShapes, track: Track, weights: Weights | None = None, *, same_take: bool = True):
     """The tracker's ARKit scores at the key set's neutral and key frames, from ``track``.
+
+    With ``weights`` (the take's solved key weights), the take's scores of every frame come
+    along too, and the mapping is fitted on the whole take (``KeyScores.take``); then the keys
+    may come from other takes (a reused key set: ``same_take=False``, their frames are not read).
 
     Returns
     -------
     KeyScores or None
-        None when the track has no scores (another tracker's landmarks) or a key frame lies
-        outside it. Every key must come from ``track``'s take (the keys just discovered on it).
+        None when the track has no scores (another tracker's landmarks), or, without
+        ``weights``, when a key frame lies outside it (the keys come from another take).
     """
     from ..targets import KeyScores
 
     if track.blendshapes is None or not track.blendshape_names:
         return None
-    frames = np.asarray(keys.frames, dtype=np.int64)
-    if max(int(frames.max(initial=0)), keys.neutral_frame) >= track.n_frames:
-        return None
     names = tuple(track.blendshape_names)
+    take = None if weights is None else (track.blendshapes, np.asarray(weights.values, dtype=float))
+    frames = np.asarray(keys.frames, dtype=np.int64)
+    if not same_take or max(int(frames.max(initial=0)), keys.neutral_frame) >= track.n_frames:
+        if take is None:
+            return None
+        return KeyScores(np.full(len(names), np.nan), np.full((keys.n_keys, len(names)), np.nan), names, *take)
     neutral, rows = track.blendshapes[keys.neutral_frame], track.blendshapes[frames].copy()
     if keys.mirrored.any():  # a mirrored key's scores: its source's change from the neutral, sides swapped
         swap = [names.index(_other_side(n)) if _other_side(n) in names else i for i, n in enumerate(names)]
         rows[keys.mirrored] = neutral + (rows[keys.mirrored] - neutral)[:, swap]
-    return KeyScores(neutral, rows, names)
+    return KeyScores(neutral, rows, names, *(take or (None, None)))
 
 
 def _other_side(name: str) -> str:

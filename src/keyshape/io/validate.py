@@ -66,7 +66,7 @@ def _numeric(array: np.ndarray) -> bool:
 
 
 def _check_points_values(path, points: np.ndarray) -> None:
-    values = points.astype(float, copy=False)
+    values = points if points.dtype.kind == "f" else points.astype(float)  # float32 tracks: no copy
     finite = np.isfinite(values)
     bad = ~finite & ~np.isnan(values)
     if bad.any():

@@ -27,7 +27,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 __all__ = ["Pool", "hull", "pool", "principal_axes", "principal_axes_blocked", "scatter", "spread"]
 
@@ -142,6 +141,8 @@ def _hull_vertices(points: np.ndarray) -> np.ndarray:
         return np.unique([np.argmin(points[:, 0]), np.argmax(points[:, 0])])
     if n <= m + 1:
         return np.arange(n)
+    from scipy.spatial import ConvexHull, QhullError  # here: a quarter second to import, for one method
+
     try:
         return np.sort(ConvexHull(points).vertices)
     except QhullError:  # flat point set: joggle it

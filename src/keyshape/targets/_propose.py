@@ -188,11 +188,18 @@ class KeyScores:
         At each key's frame, in key order.
     names : tuple of n_scores str
         ARKit names (``eyeBlinkLeft``, ``jawOpen``, ...; ``_neutral`` is ignored).
+    take : (n_frames, n_scores) float or None
+        The scores of every frame of the take (NaN where no face), with
+    weights : (n_frames, n_keys) float or None
+        the take's solved key weights: the mapping is then fitted on the whole take
+        (:func:`_take_mapping`), not read off the key frames alone.
     """
 
     neutral: np.ndarray
     keys: np.ndarray
     names: tuple
+    take: np.ndarray | None = None
+    weights: np.ndarray | None = None
 
 
 def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float = 3e-3, min_gain: float = 0.05,
@@ -308,15 +315,54 @@ def _score_mapping(keys: KeyShapes, rig: Rig, corr: Correspondence, scores: KeyS
     table = _score_channels(scores.names, rig.names) * allowed[:, None]
     neutral = np.clip(table @ np.nan_to_num(np.asarray(scores.neutral, dtype=float)), 0, 1)
     rest = getattr(corr, "rest_scores", None)
+    at_rest = np.zeros(len(rig.names))
     if rest:
-        at_rest = np.array([float(rest.get(n, 0.0)) for n in scores.names])
-        neutral = np.clip(neutral - np.clip(table @ at_rest, 0, 1), 0, 1)
-    at_keys = np.clip(np.nan_to_num(np.asarray(scores.keys, dtype=float)) @ table.T, 0, 1)  # (n_keys, n_targets)
+        at_rest = np.clip(table @ np.array([float(rest.get(n, 0.0)) for n in scores.names]), 0, 1)
+        neutral = np.clip(neutral - at_rest, 0, 1)
     region = _target_regions(keys, rig, corr)
     own = region[:, None] == np.asarray(keys.key_regions)[None, :]  # (n_targets, n_keys)
+    if scores.take is not None and scores.weights is not None:
+        fitted = _take_mapping(keys, rig, table, own, scores, at_rest)
+        if fitted is not None:
+            return fitted
+    at_keys = np.clip(np.nan_to_num(np.asarray(scores.keys, dtype=float)) @ table.T, 0, 1)  # (n_keys, n_targets)
     base = np.clip(table @ np.nan_to_num(np.asarray(scores.neutral, dtype=float)), 0, 1)
     gains = np.where(own, np.maximum(at_keys.T - base[:, None], -neutral[:, None]), 0.0)
     return Mapping(gains, keys.names, rig.names, offset=neutral)
+
+
+def _take_mapping(keys: KeyShapes, rig: Rig, table: np.ndarray, own: np.ndarray, scores: KeyScores,
+                  at_rest: np.ndarray, *, ridge: float = 1e-3) -> Mapping | None:
+    r"""The mapping fitted on the whole take: each target's reading ``y_t(f)`` (the tracker's score
+    of frame ``f`` less the character's own at rest) regressed on the key weights of its region,
+
+    .. math::
+
+        \min_{c_t, g_t} \sum_f \big(y_t(f) - c_t - \textstyle\sum_{k \in R(t)} g_{tk} w_k(f)\big)^2
+        + \lambda n_f \lVert g_t \rVert^2,
+
+    then ``offset = clip(c, 0, 1)`` and ``gains = max(g, −offset)``. Every frame is evidence, not
+    only the key frames: what a key does on average over the take, its frame's own noise averaged
+    out. None when the take has too few frames with a face and weights.
+    """
+    S = np.asarray(scores.take, dtype=float)
+    W = np.asarray(scores.weights, dtype=float)
+    if S.ndim != 2 or W.shape != (len(S), keys.n_keys):
+        return None
+    ok = np.isfinite(S).all(axis=1) & np.isfinite(W).all(axis=1)
+    if ok.sum() < 2 * (keys.n_keys + 1):
+        return None
+    Y = np.clip(S[ok] @ table.T, 0, 1) - at_rest  # (n_frames, n_targets)
+    X = np.column_stack([np.ones(int(ok.sum())), W[ok]])
+    gains, offset = np.zeros((rig.n_targets, keys.n_keys)), np.zeros(rig.n_targets)
+    for t in np.flatnonzero(table.any(axis=1)):
+        columns = np.flatnonzero(own[t])
+        Xt = X[:, [0, *(columns + 1)]]
+        penalty = ridge * len(Xt) * np.diag([0.0] + [1.0] * len(columns))
+        coef = np.linalg.solve(Xt.T @ Xt + penalty, Xt.T @ Y[:, t])
+        offset[t] = np.clip(coef[0], 0, 1)
+        gains[t, columns] = np.maximum(coef[1:], -offset[t])
+    return Mapping(gains, keys.names, rig.names, offset=offset)
 
 
 def _target_regions(keys: KeyShapes, rig: Rig, corr: Correspondence) -> np.ndarray:
