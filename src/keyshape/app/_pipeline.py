@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..alignment import align, choose_neutral
+from ..alignment import align, choose_neutral, choose_neutral_frame
 from ..capture.filters import GapReport, gap_report, hold_neutral
 from ..capture.gaze import Gaze, estimate_gaze
 from ..containers import KeyShapes, Poses, Track, Weights
@@ -35,9 +35,9 @@ __all__ = ["discover_keys", "extend_keys", "coverage", "Coverage", "solve_take",
            "arkit_scores", "key_scores", "Solved"]
 
 
-def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray) -> int:
+def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray, regions: dict | None = None) -> int:
     if neutral is None:
-        return choose_neutral(track, stable=stable)
+        return choose_neutral_frame(track, stable=stable, regions=regions)
     return check_neutral_frame(track, neutral, name="--neutral")
 
 
@@ -61,7 +61,9 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
         ``max_error`` (% of the inter-ocular distance; see :func:`keyshape.keyshapes._search.find_keyshapes`)
     method : "spa", "hull" or "spread"
     neutral : the neutral frame of the first take, or None to choose it automatically
-        (:func:`keyshape.alignment._procrustes.choose_neutral`: the frame closest to the median aligned shape)
+        (:func:`keyshape.alignment.choose_neutral_frame`: the least activated frame by the tracker's
+        expression scores with the whole face in view; without scores the frame closest to the median
+        aligned shape)
     take : a name per take, recorded with every key
     stable : (n_stable,) int landmarks to align on (default: the scheme's stable points)
     upper : the weight bound the keys will be solved with (selection fits under it)
@@ -82,14 +84,18 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
         raise InputError(f"a track needs at least 2 frames with a face; this one has {valid}")
     region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
     stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
-    neutral = _neutral_frame(first, neutral, stable)
-    seen = None if all(t.visibility is None for t in tracks) else np.concatenate([t.seen for t in tracks])
-    together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps, visibility=seen)
+    neutral = _neutral_frame(first, neutral, stable, region_map)
+    together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps, visibility=_seen(tracks))
     keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
                           neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)
     if mirror:
         keys = add_mirrors(keys, min_reach=min_reach, max_error=max_error, upper=upper)
     return _split_takes(keys, [t.n_frames for t in tracks], takes)
+
+
+def _seen(tracks: Sequence[Track]) -> np.ndarray | None:
+    """(sum of n_frames, n_landmarks) visibility of the takes end to end; None when none has any."""
+    return None if all(t.visibility is None for t in tracks) else np.concatenate([t.seen for t in tracks])
 
 
 def _aligned_together(tracks: Sequence[Track], reference: np.ndarray, stable: np.ndarray) -> np.ndarray:
@@ -133,7 +139,7 @@ def extend_keys(keys: KeyShapes, track: Track | Sequence[Track], *, take: str | 
             raise InputError(f"{name}: has {t.n_landmarks} landmarks in {t.n_dims}D but the key set was made "
                              f"from {keys.n_landmarks} in {keys.n_dims}D")
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
-    together = Track(_aligned_together(tracks, keys.neutral, stable), tracks[0].fps)
+    together = Track(_aligned_together(tracks, keys.neutral, stable), tracks[0].fps, visibility=_seen(tracks))
     extended, _ = extend_keyshapes(keys, together, max_error=max_error, max_keys=max_keys, upper=upper)
     if mirror:
         extended = add_mirrors(extended, min_reach=min_reach, max_error=max_error, upper=upper)
@@ -205,7 +211,7 @@ def coverage(keys: KeyShapes, track: Track, *, max_error: float = MAX_ERROR, upp
         raise InputError(f"the take has {track.n_landmarks} landmarks in {track.n_dims}D but the key set was made "
                          f"from {keys.n_landmarks} in {keys.n_dims}D")
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
-    aligned = Track(_aligned_together([track], keys.neutral, stable), track.fps)
+    aligned = Track(_aligned_together([track], keys.neutral, stable), track.fps, visibility=track.visibility)
     errors = region_errors(keys, aligned, upper=upper)
     _, needed = extend_keyshapes(keys, aligned, max_error=max_error, max_keys=max_added, upper=upper)
     longest = min(max(len(c) for c in needed.values()) - 1 + past_target, max_added)

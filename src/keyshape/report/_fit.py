@@ -171,7 +171,37 @@ def take_numbers(track: Track, keys: KeyShapes, fit: FitQuality) -> dict:
         "gaps": n_gaps, "longest_gap_frames": longest, "longest_gap_s": _round(longest / track.fps, 2),
         "neutral_frame": int(keys.neutral_frame), "method": keys.method, "n_keys": keys.n_keys,
         "error_unit": fit.unit, "hull_tolerance": fit.tolerance, "regions": regions,
+        "neutral": neutral_numbers(track, keys), "hidden": hidden_numbers(track, keys),
     }
+
+
+def neutral_numbers(track: Track, keys: KeyShapes) -> dict | None:
+    """How sure the neutral frame is (:func:`keyshape.alignment.explain_neutral`); None when it is not
+    a frame of this take (a key set from another take)."""
+    from ..alignment import choose_neutral, choose_neutral_frame, explain_neutral
+    from ..schemes import stable_points
+
+    frame = int(keys.neutral_frame)
+    if not 0 <= frame < track.n_frames or not track.valid[frame] or track.valid.sum() < 2:
+        return None
+    stable = keys.stable if keys.stable is not None else stable_points(track.n_landmarks)
+    rule = ("scores" if frame == choose_neutral_frame(track, stable=stable, regions=keys.regions) else
+            "median" if frame == choose_neutral(track, stable=stable, regions=keys.regions) else "given")
+    c = explain_neutral(track, frame, stable=stable, scale=metrics_face_scale(track.points[frame])[0], rule=rule,
+                        regions=keys.regions)
+    return {"frame": c.frame, "rule": c.rule, "confidence": c.confidence, "reason": c.reason,
+            "check_frame": c.check_frame, "distance": _round(c.distance, 2), "activation": _round(c.activation),
+            "median_activation": _round(c.median_activation), "share_below": _round(c.share_below),
+            "top": [list(t) for t in c.top]}
+
+
+def hidden_numbers(track: Track, keys: KeyShapes) -> dict:
+    """Per region, the frames whose region is hidden (more than 30 % of its landmarks below visibility 0.5)."""
+    out = {}
+    for region, landmarks in keys.regions.items():
+        hidden = (track.seen[:, landmarks] < 0.5).mean(axis=1) > 0.3
+        out[region] = {"frames": int(hidden.sum()), "share": _round(hidden.mean() if track.n_frames else 0.0)}
+    return out
 
 
 def _round(value, digits: int = 3):

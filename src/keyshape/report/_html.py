@@ -57,7 +57,8 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     """
     parts = [f"<h1>{html.escape(title)}</h1>", _subtitle(numbers)]
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in notes or []]
-    parts += ["<h2>Numbers</h2>", _numbers_table(numbers), _regions_table(numbers)]
+    parts += ["<h2>Numbers</h2>", _numbers_table(numbers), _regions_table(numbers), _neutral_note(numbers),
+              _hidden_note(numbers)]
     if video:
         parts += ["<h2>Preview</h2>",
                   f'<video controls loop muted preload="metadata" src="{html.escape(video)}"></video>',
@@ -81,6 +82,30 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
 def _subtitle(n: dict) -> str:
     return (f'<p class="sub">{n["frames"]} frames at {n["fps"]:g} fps ({n["duration_s"]:g} s) · '
             f'{n["n_keys"]} key shapes ({html.escape(str(n["method"]))}) · neutral frame {n["neutral_frame"]}</p>')
+
+
+def _neutral_note(n: dict) -> str:
+    """The neutral frame: which rule chose it, how sure that is and why."""
+    c = n.get("neutral")
+    if not c:
+        return ""
+    rule = {"scores": "the least activated frame by the tracker's expression scores with the whole face in view",
+            "median": "the frame nearest the median aligned shape", "given": "given (--neutral)"}[c["rule"]]
+    return (f'<p class="note" id="neutral">Neutral frame {c["frame"]}: {html.escape(rule)}. Confidence '
+            f'<b>{html.escape(c["confidence"])}</b>: {html.escape(c["reason"])}. Pass <code>--neutral FRAME</code> '
+            f"to choose another.</p>")
+
+
+def _hidden_note(n: dict) -> str:
+    """Frames whose region was hidden (a hand, the head turned away): no key was taken there and the solve
+    leaned on the smoothness across them."""
+    hidden = {r: v for r, v in (n.get("hidden") or {}).items() if v["frames"]}
+    if not hidden:
+        return ""
+    text = ", ".join(f'{html.escape(r)} {v["frames"]} frames ({100 * v["share"]:.0f} %)' for r, v in hidden.items())
+    return (f'<p class="note" id="hidden">Hidden (more than 30 % of the landmarks below visibility 0.5): {text}. '
+            "No key comes from these frames; the solve weights hidden landmarks by their visibility and "
+            "bridges fully hidden spans with the smoothness term (shaded in the weights plot).</p>")
 
 
 def _numbers_table(n: dict) -> str:

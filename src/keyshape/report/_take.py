@@ -161,7 +161,8 @@ def _pictures(outdir: Path, take: _Take, fit: FitQuality, k_table) -> dict[str, 
     names = (take.name, take.info.get("files", {}).get("track", "track.npz"))
     out = {"keyshapes": plots.contact_sheet(take.keys, take.track, images, outdir / "keyshapes.png",
                                             take=names),
-           "weights": plots.weight_curves(take.weights, take.keys, fit, outdir / "weights.png")}
+           "weights": plots.weight_curves(take.weights, take.keys, fit, outdir / "weights.png",
+                                            hidden=_hidden(take))}
     k_table = k_table if k_table is not None else _read_k_table(outdir / "error_vs_k.json")
     if k_table:
         chosen = {r: len(take.keys.keys_of(r)) for r in take.keys.regions}
@@ -257,6 +258,13 @@ def _vertex_colours(glb: Path, rig) -> np.ndarray | None:
     if linear.shape != (rig.n_vertices, 3):
         return None
     return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, 1) ** (1 / 2.4) - 0.055)
+
+
+def _hidden(take: _Take) -> dict[str, np.ndarray] | None:
+    """Per region, (n_frames,) bool: frames whose region is hidden (as key discovery counts it)."""
+    if take.track.visibility is None or take.track.n_frames != take.weights.n_frames:
+        return None
+    return {r: (take.track.visibility[:, ix] < 0.5).mean(axis=1) > 0.3 for r, ix in take.keys.regions.items()}
 
 
 def _stable(keys: KeyShapes) -> np.ndarray:

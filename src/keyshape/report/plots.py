@@ -145,11 +145,14 @@ def _square_box(xy: np.ndarray, shape=None, *, margin: float = 0.12) -> tuple[fl
 # --------------------------------------------------------------------------- weight curves
 
 
-def weight_curves(weights: Weights, keys: KeyShapes, fit: FitQuality, path) -> Path:
+def weight_curves(weights: Weights, keys: KeyShapes, fit: FitQuality, path, *,
+                  hidden: dict[str, np.ndarray] | None = None) -> Path:
     """Weights over time, one panel per region, with the reconstruction error underneath.
 
     Frames without a face are shaded grey; frames outside a region's key-shape hull
-    (``fit.outside``, see :func:`keyshape.report._take.fit_quality`) are shaded in the region's colour.
+    (``fit.outside``, see :func:`keyshape.report._take.fit_quality`) are shaded in the region's colour;
+    frames where the region is hidden (``hidden[region]``, (n_frames,) bool: a hand over the mouth)
+    are hatched.
 
     Parameters
     ----------
@@ -177,6 +180,8 @@ def weight_curves(weights: Weights, keys: KeyShapes, fit: FitQuality, path) -> P
         _region_panel(ax, weights, keys, region, palette[region])
         _shade(ax, times, gaps, _GAP_COLOUR, 0.35)
         _shade(ax, times, fit.outside[region], _rgb(palette[region]), 0.18)
+        if hidden is not None and np.any(hidden.get(region, False)):
+            _hatch(ax, times, np.asarray(hidden[region], dtype=bool))
     _error_panel(axes[-1], times, fit, palette)
     _shade(axes[-1], times, gaps, _GAP_COLOUR, 0.35)
     axes[-1].set_xlabel("time (s)")
@@ -210,6 +215,14 @@ def _error_panel(ax, times: np.ndarray, fit: FitQuality, palette) -> None:
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.25)
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=7, frameon=False)
+
+
+def _hatch(ax, times: np.ndarray, mask: np.ndarray) -> None:
+    """Hatch the runs of ``mask`` (a hidden region: its weights are the smoothness term's bridge)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    for i, (start, stop) in enumerate(zip(edges[::2], edges[1::2])):
+        ax.axvspan(times[start], times[stop - 1], facecolor="none", edgecolor="0.35", hatch="//", lw=0.0,
+                   label="hidden" if i == 0 else None)
 
 
 def _shade(ax, times: np.ndarray, mask: np.ndarray, colour, alpha: float) -> None:
