@@ -136,3 +136,19 @@ def test_the_head_turns_in_the_preview(rig):
     face = [np.argwhere((image[30:].astype(int) - image[-1, 0]).any(axis=2)) for image in (still, turned)]
     assert np.abs(still.astype(int) - turned.astype(int)).mean() > 5
     assert abs(face[1][:, 1].mean() - face[0][:, 1].mean()) > 3  # the head's picture moves as it turns
+
+
+def test_the_lower_face_moves_at_the_actors_amplitude(head, keys, rig):
+    """Landmark motion relative to face size (the RMS radius of the landmarks): the character's
+    jaw key moves its landmarks as far as the actor's (the transfer alone gives about 0.8-0.9)."""
+    ids = np.arange(468)
+    actor, character = keys.neutral[ids, :2], rig.vertices[head.landmark_vertices[ids], :2]
+
+    def radius(points):
+        return np.sqrt(((points - points.mean(axis=0)) ** 2).sum(axis=1).mean())
+
+    lower = np.asarray(keys.regions["lower"])
+    lower = lower[lower < 468]
+    a = np.linalg.norm(keys.deltas[1, lower, :2], axis=1) / radius(actor)
+    c = np.linalg.norm(rig.deltas[rig.names.index("jaw"), head.landmark_vertices[lower], :2], axis=1) / radius(character)
+    assert (c @ a) / (a @ a) == pytest.approx(1.0, abs=0.05)
