@@ -1,0 +1,53 @@
+"""The score mapping fitted on the whole take (targets._propose._take_mapping) on a synthetic take
+with a known key -> ARKit relation, against reading each key's frame alone."""
+
+import numpy as np
+
+from keyshape.containers import KeyShapes, Rig
+from keyshape.targets import KeyScores
+from keyshape.targets._propose import _take_mapping
+
+
+def _setup(seed=0, n_frames=400, noise=0.08):
+    rng = np.random.default_rng(seed)
+    n_keys, n_targets = 4, 6
+    keys = KeyShapes(np.zeros((3, 2)), np.ones((n_keys, 3, 2)), ("upper_00", "upper_01", "lower_00", "lower_01"),
+                     [10, 20, 30, 40], ("upper", "upper", "lower", "lower"), {"upper": [0], "lower": [1, 2]})
+    names = tuple(f"t{i}" for i in range(n_targets))
+    rig = Rig(np.zeros((3, 3)), [[0, 1, 2]], np.zeros((n_targets, 3, 3)), names)
+    own = np.array([[1, 1, 0, 0]] * 3 + [[0, 0, 1, 1]] * 3, dtype=bool)  # targets 0-2 upper, 3-5 lower
+    gains = rng.uniform(-0.1, 0.35, (n_targets, n_keys)) * own  # readings stay within [0, 1]
+    offset = rng.uniform(0.2, 0.4, n_targets)
+    weights = rng.uniform(0, 1, (n_frames, n_keys)) * (rng.uniform(size=(n_frames, n_keys)) < 0.4)
+    truth = offset + weights @ gains.T
+    scores = np.clip(truth + noise * rng.standard_normal(truth.shape), 0, 1)
+    return keys, rig, own, gains, offset, weights, truth, scores
+
+
+def test_the_whole_take_recovers_the_keys_relation():
+    keys, rig, own, gains, offset, weights, truth, scores = _setup()
+    rest = np.full(rig.n_targets, 0.1)  # the tracker reads the character at 0.1 at rest
+    bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=np.clip(scores + rest, 0, 1), weights=weights)
+    mapping = _take_mapping(keys, rig, np.eye(6), own, bundle, rest)
+    assert np.abs(mapping.matrix - gains).max() < 0.05 and np.abs(mapping.offset - offset).max() < 0.03
+    assert np.all(mapping.matrix[~own] == 0)  # a key drives only its own region's targets
+    fitted = mapping.offset + weights @ mapping.matrix.T
+    # reading each key's frame alone: the gains are that frame's scores minus the neutral frame's
+    frame = np.argmax(weights, axis=0)
+    alone = scores[frame] - scores[np.argmin(weights.sum(axis=1))]
+    by_frames = scores[np.argmin(weights.sum(axis=1))] + weights @ (alone.T * own).T
+    assert np.abs(fitted - truth).mean() < 0.5 * np.abs(by_frames - truth).mean()
+
+
+def test_too_few_frames_fall_back():
+    keys, rig, own, _, _, weights, _, scores = _setup(n_frames=6)
+    bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=scores, weights=weights)
+    assert _take_mapping(keys, rig, np.eye(6), own, bundle, np.zeros(6)) is None
+
+
+def test_frames_without_a_face_are_left_out():
+    keys, rig, own, gains, offset, weights, _, scores = _setup(seed=1)
+    scores[::5] = np.nan
+    bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=scores, weights=weights)
+    mapping = _take_mapping(keys, rig, np.eye(6), own, bundle, np.zeros(6))
+    assert np.isfinite(mapping.matrix).all() and np.abs(mapping.matrix - gains).max() < 0.06
