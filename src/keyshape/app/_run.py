@@ -89,9 +89,7 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
     from ..targets import Mapping
 
     if options.rig is None:
-        from ..targets import default_character
-
-        from ..targets import with_gaze_targets
+        from ..targets import default_character, with_gaze_targets
 
         rig = with_gaze_targets(default_character(keys))  # a stylised head with proposed targets (issue 7)
         return rig, Mapping.by_name(keys.names, rig.names, allow_extra=True), False, None
@@ -130,7 +128,7 @@ def _read_inputs(options: RunOptions, video: Path, track: Track | None) -> tuple
 
         Mapping.from_file(options.mapping, targets=rig.names)
     keys = load_keys(options.keys) if options.keys is not None else None
-    if options.neutral is not None and track is None and keys is None:
+    if isinstance(options.neutral, int) and track is None and keys is None:
         _check_neutral_in_range(options, video)
     return rig, keys
 
