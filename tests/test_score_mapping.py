@@ -46,7 +46,7 @@ def test_too_few_frames_fall_back():
 
 
 def test_frames_without_a_face_are_left_out():
-    keys, rig, own, gains, offset, weights, _, scores = _setup(seed=1)
+    keys, rig, own, gains, _, weights, _, scores = _setup(seed=1)
     scores[::5] = np.nan
     bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=scores, weights=weights)
     mapping = _take_mapping(keys, rig, np.eye(6), own, bundle, np.zeros(6))
