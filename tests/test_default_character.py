@@ -153,3 +153,17 @@ def test_the_lower_face_moves_at_the_actors_amplitude(head, keys, rig):
     jaw = rig.deltas[rig.names.index("jaw"), head.landmark_vertices[lower], :2]
     c = np.linalg.norm(jaw, axis=1) / radius(character)
     assert (c @ a) / (a @ a) == pytest.approx(1.0, abs=0.05)
+
+
+def test_the_glb_carries_the_colours_and_passes_the_validator(head, rig, tmp_path):
+    from gltf_validator import validate
+
+    from keyshape.containers import Weights
+    from keyshape.io.gltf import read_colours, write_glb
+
+    weights = Weights(np.zeros((3, rig.n_targets)), rig.names, fps=24.0)
+    path = write_glb(tmp_path / "head.glb", rig, weights, colours=head.colours)
+    report = validate(path)
+    assert (report["numErrors"], report["numWarnings"]) == (0, 0), report["messages"][:5]
+    linear = read_colours(path)[:, :3]  # glTF's COLOR_0 is linear
+    np.testing.assert_allclose(linear ** (1 / 2.4), head.colours, atol=0.06)
