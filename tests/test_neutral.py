@@ -69,3 +69,18 @@ def test_the_embedded_clip_neutral_smiles_least(real_track):
                              regions=regions)
     assert choice.confidence == "low" and "never rest" in choice.reason
     assert choice.activation < 0.6 * choice.median_activation
+
+
+def test_a_separate_rest_clip_is_the_neutral():
+    """``neutral=`` a clip of the actor at rest: its median aligned shape is the neutral, its name the
+    neutral take, and no key comes from it."""
+    from keyshape.app import discover_keys
+
+    perf = make_performance(n_frames=200, n_keys=4, noise=0.3, random_state=4)
+    at_rest = perf.track.points[perf.neutral_frame]  # the planted rest frame, in image pixels
+    rest = at_rest + np.random.default_rng(1).normal(0.0, 0.3, (12, *at_rest.shape))
+    keys = discover_keys(perf.track, regions=perf.regions, n_keys=2, neutral=Track(rest, 30.0), take="take",
+                         stable=perf.stable, mirror=False)
+    assert keys.neutral_take == "neutral" and set(keys.takes) == {"take"} and 0 <= keys.neutral_frame < 12
+    rms = np.sqrt(((keys.neutral - at_rest) ** 2).sum(axis=1).mean())
+    assert rms < 0.05 * face_scale(at_rest)[0]

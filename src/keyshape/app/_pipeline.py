@@ -42,7 +42,8 @@ def _neutral_frame(track: Track, neutral: int | None, stable: np.ndarray, region
 
 
 def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict = DEFAULT_REGIONS,
-                  n_keys: int | str = DEFAULT_N_KEYS, method: str = DEFAULT_METHOD, neutral: int | None = None,
+                  n_keys: int | str = DEFAULT_N_KEYS, method: str = DEFAULT_METHOD,
+                  neutral: int | str | Path | Track | None = None,
                   take: str | Sequence[str] = "", stable: np.ndarray | None = None,
                   upper: float | None = DEFAULT_UPPER, max_error: float = MAX_ERROR,
                   mirror: bool = DEFAULT_MIRROR, min_reach: float = MIN_REACH) -> KeyShapes:
@@ -60,7 +61,9 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
     n_keys : key shapes per region, or "auto": the fewest per region whose RMS error is below
         ``max_error`` (% of the inter-ocular distance; see :func:`keyshape.keyshapes._search.find_keyshapes`)
     method : "spa", "hull" or "spread"
-    neutral : the neutral frame of the first take, or None to choose it automatically
+    neutral : the neutral frame of the first take; a Track, image or video file of the actor at rest (its
+        median aligned shape is the neutral; ``keys.neutral_take`` is the file's name, ``neutral_frame`` its frame
+        nearest that shape); or None to choose it automatically
         (:func:`keyshape.alignment.choose_neutral_frame`: the least activated frame by the tracker's
         expression scores with the whole face in view; without scores the frame closest to the median
         aligned shape)
@@ -84,13 +87,45 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
         raise InputError(f"a track needs at least 2 frames with a face; this one has {valid}")
     region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
     stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
+    rest = None
+    if isinstance(neutral, (str, Path, Track)):  # a separate clip or still of the actor at rest
+        rest = neutral if isinstance(neutral, Track) else _track_file(neutral)
+        tracks, takes = [_rest_take(rest, stable, first)], [_rest_name(neutral), *takes]
+        tracks += [track] if isinstance(track, Track) else list(track)
+        first, neutral = tracks[0], 0
     neutral = _neutral_frame(first, neutral, stable, region_map)
     together = Track(_aligned_together(tracks, first.points[neutral], stable), first.fps, visibility=_seen(tracks))
     keys = find_keyshapes(together, regions=region_map, n_keys=n_keys, method=method,
                           neutral_frame=neutral, stable=stable, upper=upper, max_error=max_error)
     if mirror:
         keys = add_mirrors(keys, min_reach=min_reach, max_error=max_error, upper=upper)
-    return _split_takes(keys, [t.n_frames for t in tracks], takes)
+    keys = _split_takes(keys, [t.n_frames for t in tracks], takes)
+    if rest is None:
+        return keys
+    # the neutral take's frame nearest its median shape is recorded (the shape is the median itself)
+    frame = choose_neutral(rest, stable=stable, regions=region_map)
+    return KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames, keys.key_regions, keys.regions, keys.takes,
+                     frame, keys.neutral_take, keys.method, keys.stable, keys.mirror_of)
+
+
+def _track_file(path) -> Track:
+    from ..capture import track_video
+
+    return track_video(path, progress=False)
+
+
+def _rest_name(neutral) -> str:
+    return Path(neutral).name if isinstance(neutral, (str, Path)) else "neutral"
+
+
+def _rest_take(rest: Track, stable: np.ndarray, like: Track) -> Track:
+    """A one-frame take: the median aligned shape of a clip (or still) of the actor at rest."""
+    if (rest.n_landmarks, rest.n_dims) != (like.n_landmarks, like.n_dims) or not rest.valid.any():
+        raise InputError(f"the neutral clip must show the face with {like.n_landmarks} landmarks in {like.n_dims}D; "
+                         f"it has {int(rest.valid.sum())} frames with a face of {rest.n_landmarks} landmarks")
+    frame = choose_neutral(rest, stable=stable)
+    aligned = align(rest, reference=frame, stable=stable)[0].points[rest.valid]
+    return Track(np.median(aligned, axis=0)[None], like.fps)
 
 
 def _seen(tracks: Sequence[Track]) -> np.ndarray | None:

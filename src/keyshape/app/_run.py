@@ -262,7 +262,8 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
                              upper=options.upper, max_error=options.max_error, mirror=options.mirror)
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
-    scores = key_scores(keys, track, solved.weights, same_take=options.keys is None)  # reused keys too
+    scores = key_scores(keys, track, solved.weights,
+                        same_take=options.keys is None and not isinstance(options.neutral, Path))  # reused keys too
     rig, mapping, keep_file, auto = _rig_and_mapping(options, keys, scores, loaded_rig)
     with staged_folder(outdir, owned=_run_owned) as stage:  # stale outputs of an earlier run go
         _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file)

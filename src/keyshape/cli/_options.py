@@ -65,9 +65,20 @@ def add_key_options(p: argparse.ArgumentParser) -> None:
                    help="no mirrored keys (default: each key's left-right mirror image is added where it "
                         "reaches what the keys cannot, so a one-sided move seen on one side drives the "
                         "other side too; mirrored keys need no sculpting: their targets are mirrored)")
-    p.add_argument("--neutral", type=whole(0), default=None, metavar="FRAME",
-                   help="the neutral (resting) frame; default: chosen automatically as the frame "
-                        "closest to the median aligned shape")
+    p.add_argument("--neutral", type=_neutral, default=None, metavar="FRAME|FILE",
+                   help="the neutral (resting) face: a frame of the (first) take, or a still image or short "
+                        "clip of the same actor at rest (tracked; its median aligned shape is the neutral); "
+                        "default: the least activated frame by MediaPipe's scores with the whole face in view")
+
+
+def _neutral(text: str) -> int | Path:
+    """``--neutral``: a frame number (>= 0) or an existing image or video file."""
+    if text.isdigit():
+        return int(text)
+    path = Path(text)
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"must be a frame number >= 0 or an image or video file; got {text!r}")
+    return path
 
 
 def add_capture_options(p: argparse.ArgumentParser) -> None:

@@ -182,6 +182,9 @@ def neutral_numbers(track: Track, keys: KeyShapes) -> dict | None:
     from ..schemes import stable_points
 
     frame = int(keys.neutral_frame)
+    if keys.neutral_take and keys.neutral_take not in keys.takes:  # from a separate clip of the actor at rest
+        return {"frame": frame, "rule": "clip", "take": keys.neutral_take, "confidence": "given",
+                "reason": f"the median aligned shape of {keys.neutral_take}, a separate clip of the actor at rest"}
     if not 0 <= frame < track.n_frames or not track.valid[frame] or track.valid.sum() < 2:
         return None
     stable = keys.stable if keys.stable is not None else stable_points(track.n_landmarks)

@@ -90,7 +90,8 @@ def _neutral_note(n: dict) -> str:
     if not c:
         return ""
     rule = {"scores": "the least activated frame by the tracker's expression scores with the whole face in view",
-            "median": "the frame nearest the median aligned shape", "given": "given (--neutral)"}[c["rule"]]
+            "median": "the frame nearest the median aligned shape", "given": "given (--neutral)",
+            "clip": "from a separate clip (--neutral FILE)"}[c["rule"]]
     return (f'<p class="note" id="neutral">Neutral frame {c["frame"]}: {html.escape(rule)}. Confidence '
             f'<b>{html.escape(c["confidence"])}</b>: {html.escape(c["reason"])}. Pass <code>--neutral FRAME</code> '
             f"to choose another.</p>")
