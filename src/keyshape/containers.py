@@ -26,6 +26,12 @@ def _frozen(array, dtype=float) -> np.ndarray:
     return out
 
 
+def _frozen_owner(array) -> bool:
+    """A float64 ndarray owning its data and read-only: nothing else holds it writable."""
+    return isinstance(array, np.ndarray) and array.dtype == np.float64 and array.flags.owndata \
+        and not array.flags.writeable
+
+
 def blend(base: np.ndarray, deltas: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Blendshape interpolation ``base + Σ_k w_k · delta_k`` (the paper's Eq. 1, delta form).
 
@@ -66,6 +72,9 @@ def _frame_clock(n_frames: int, fps: float, frame_index, time) -> tuple[np.ndarr
     return _frozen(index, dtype=np.int64), _frozen(seconds)
 
 
+HIDDEN_SHARE = 0.3  # a region is hidden in a frame when more of its landmarks have visibility below 0.5
+
+
 @dataclass(frozen=True, eq=False)
 class Track:
     """A landmark performance.
@@ -103,7 +112,9 @@ class Track:
     visibility: np.ndarray | None = None
 
     def __post_init__(self):
-        points = np.array(self.points, dtype=float)  # our own copy, frozen below
+        points = self.points
+        if not _frozen_owner(points):  # a read-only float array owning its data is frozen already
+            points = np.array(points, dtype=float)  # our own copy, frozen below
         if points.ndim != 3 or points.shape[2] not in (2, 3):
             raise InputError(
                 f"points must have shape (n_frames, n_landmarks, 2 or 3); got {points.shape}"
@@ -113,8 +124,11 @@ class Track:
             raise InputError(f"fps must be a positive number; got {self.fps!r}")
         # A frame is either fully present or fully missing; inf is missing as NaN is.
         partial = ~np.isfinite(points).all(axis=(1, 2))
-        points[partial] = np.nan
-        object.__setattr__(self, "points", _frozen(points))
+        if partial.any():
+            points = points if points.flags.writeable else points.copy()
+            points[partial] = np.nan
+        points.flags.writeable = False  # frozen as _frozen would, without a second copy
+        object.__setattr__(self, "points", points)
         object.__setattr__(self, "fps", fps)
         index, time = _frame_clock(points.shape[0], fps, self.frame_index, self.time)
         object.__setattr__(self, "frame_index", index)
@@ -161,6 +175,15 @@ class Track:
     def seen(self) -> np.ndarray:
         """(n_frames, n_landmarks) float: ``visibility``, or all ones when the track has none."""
         return self.visibility if self.visibility is not None else np.ones(self.points.shape[:2])
+
+    def hidden(self, landmarks) -> np.ndarray:
+        """(n_frames,) bool: frames in which the region of ``landmarks`` is hidden: more than
+        ``HIDDEN_SHARE`` (30 %) of them have a visibility below 0.5 (a hand over the mouth or an
+        eye). All False for a track without visibility. Key discovery takes no key from such a
+        frame, the error measures skip it, the neutral is never one."""
+        if self.visibility is None:
+            return np.zeros(self.n_frames, dtype=bool)
+        return (self.visibility[:, np.asarray(landmarks)] < 0.5).mean(axis=1) > HIDDEN_SHARE
 
     def with_points(self, points: np.ndarray) -> Track:
         """The same take with other landmark positions (e.g. aligned ones)."""

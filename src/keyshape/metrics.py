@@ -25,8 +25,9 @@ def reconstruction_error(
 ) -> dict[str, float]:
     """RMS reconstruction error of each region of an aligned take.
 
-    ``error_r = sqrt(mean_{f, p in r} |x_fp - x̂_fp|²)`` over the valid frames ``f`` and
-    the region's landmarks ``p``, with ``x̂ = neutral + Σ_k w_fk · delta_k``.
+    ``error_r = sqrt(mean_{f, p in r} |x_fp - x̂_fp|²)`` over the valid frames ``f`` in which the
+    region is not hidden (:meth:`keyshape.containers.Track.hidden`) and the region's landmarks
+    ``p``, with ``x̂ = neutral + Σ_k w_fk · delta_k``.
 
     Parameters
     ----------
@@ -111,7 +112,8 @@ def _check_weights(weights, n_frames: int, n_keys: int) -> np.ndarray:
 def _region_error(aligned: Track, keys: KeyShapes, region: str, weights, upper) -> float:
     """RMS error ``sqrt(mean |x - x̂|²)`` on one region's landmarks."""
     lm, k = keys.regions[region], keys.keys_of(region)
-    ok = aligned.valid if weights is None else aligned.valid & np.isfinite(weights[:, k]).all(axis=1)
+    ok = aligned.valid & ~aligned.hidden(lm)  # the tracker's guesses under a hand are not the face
+    ok = ok if weights is None else ok & np.isfinite(weights[:, k]).all(axis=1)
     targets = (aligned.points[ok][:, lm] - keys.neutral[lm]).reshape(ok.sum(), -1)
     bases = keys.deltas[k][:, lm].reshape(len(k), -1)
     if targets.size == 0:

@@ -19,7 +19,6 @@ from ._procrustes import _to_canonical, choose_neutral, procrustes
 
 __all__ = ["NeutralChoice", "activation", "least_activated", "choose_neutral_frame", "explain_neutral"]
 
-HIDDEN_SHARE = 0.3  # a region with more of its landmarks below visibility 0.5 is hidden (as in key discovery)
 REST_SCORE = 0.3  # a face at rest has no expression score above this
 AGREE = 2.0  # the two rules agree when their frames are this close (% of the face scale)
 
@@ -43,7 +42,7 @@ def whole_face_visible(track: Track, regions: dict | None) -> np.ndarray:
     if track.visibility is None:
         return ok
     for landmarks in (regions or {"face": np.arange(track.n_landmarks)}).values():
-        ok &= (track.visibility[:, np.asarray(landmarks)] < 0.5).mean(axis=1) <= HIDDEN_SHARE
+        ok &= ~track.hidden(landmarks)
     return ok
 
 
@@ -80,8 +79,8 @@ class NeutralChoice:
 
     frame : the neutral frame; rule : "scores", "median" (the automatic rules) or "given";
     check_frame : the other rule's frame (the median-shape rule's; for a median-rule choice the least
-    activated frame); distance : the two frames' RMS landmark distance, % of the face scale; activation : the neutral's total expression score and ``median_activation``
-    the take's median (None without scores); share_below : share of the frames with the whole face
+    activated frame); distance : the two frames' RMS landmark distance, % of the face scale;
+    activation : the neutral's total expression score and ``median_activation`` the take's median (None without scores); share_below : share of the frames with the whole face
     in view that are less activated than the neutral; top : its strongest scores (name, value);
     confidence : "high", "medium" or "low"; reason : one sentence saying why
     """

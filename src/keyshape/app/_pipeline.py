@@ -316,7 +316,7 @@ def fit_errors(tracks: Track | Sequence[Track], keys: KeyShapes, *,
     tracks = [tracks] if isinstance(tracks, Track) else list(tracks)
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
     points = _aligned_together(tracks, keys.neutral, stable)
-    errors = reconstruction_error(Track(points, tracks[0].fps), keys, upper=upper)
+    errors = reconstruction_error(Track(points, tracks[0].fps, visibility=_seen(tracks)), keys, upper=upper)
     length, unit = face_scale(keys.neutral)
     return {region: 100 * e / length for region, e in errors.items()}, unit
 

@@ -34,7 +34,8 @@ def region_errors(keys: KeyShapes, aligned: Track, *, upper: float | None = DEFA
 
     Returns
     -------
-    dict region -> (n_frames,) float, NaN where the track has no face
+    dict region -> (n_frames,) float, NaN where the track has no face or the region is hidden
+    (:meth:`keyshape.containers.Track.hidden`)
     """
     from ..decompose import solve_nnls
 
@@ -50,6 +51,7 @@ def region_errors(keys: KeyShapes, aligned: Track, *, upper: float | None = DEFA
             w = solve_nnls(basis.T, x, upper=upper)
             x = x - w @ basis
         error[valid] = 100 * np.sqrt((x**2).sum(axis=1) / len(landmarks)) / scale
+        error[aligned.hidden(landmarks)] = np.nan
         out[region] = error
     return out
 
@@ -87,15 +89,17 @@ def extend_keyshapes(keys: KeyShapes, aligned: Track, *, max_error: float = MAX_
     new: list[tuple[str, int, str]] = []  # (region, frame, name)
     curves = {}
     for region, landmarks in keys.regions.items():
-        data = (aligned.points[np.ix_(valid, landmarks)] - keys.neutral[landmarks]).reshape(len(valid), -1)
+        seen = valid[~aligned.hidden(landmarks)[valid]]  # no key (and no error) from under a hand
+        seen = seen if len(seen) else valid
+        data = (aligned.points[np.ix_(seen, landmarks)] - keys.neutral[landmarks]).reshape(len(seen), -1)
         rows = keys.keys_of(region)
         basis = keys.deltas[np.ix_(rows, landmarks)].reshape(len(rows), -1)
         picks, curve = _grow_from(basis, data, bound, max_error, max_keys,
-                                  to_percent=100.0 / (scale * np.sqrt(len(valid) * len(landmarks))))
+                                  to_percent=100.0 / (scale * np.sqrt(len(seen) * len(landmarks))))
         curves[region] = curve
         for pick in picks:
             name = _next_name(region, names, used)
-            new.append((region, int(valid[pick]), name))
+            new.append((region, int(seen[pick]), name))
     if not new:
         return keys, curves
     deltas, frames = list(keys.deltas), list(keys.frames)

@@ -75,7 +75,6 @@ __all__ = ["MAX_CANDIDATES", "MAX_ERROR", "MAX_KEYS", "METHODS", "KChoice", "cho
 
 Method = Literal["spa", "spread", "hull"]
 METHODS: tuple[str, ...] = ("spa", "spread", "hull")
-HIDDEN_SHARE = 0.3  # a region with more of its landmarks hidden in a frame takes no key from it
 MAX_CANDIDATES = 2048  # more candidate frames: keys are searched among this many (see the module notes)
 
 
@@ -286,14 +285,14 @@ def candidate_frames(aligned: Track, neutral_frame: int) -> np.ndarray:
 def visible_frames(aligned: Track, candidates: np.ndarray, landmarks) -> np.ndarray:
     """The ``candidates`` (n_candidates,) int in which the region of ``landmarks`` is not hidden.
 
-    A region is hidden in a frame when more than ``HIDDEN_SHARE`` of its landmarks have a
-    visibility below 0.5 (a hand over the mouth or an eye; see :attr:`Track.visibility`): a key
-    is a real frame of the region, never the tracker's guess under a hand. Tracks without
+    A region is hidden in a frame when more than ``containers.HIDDEN_SHARE`` of its landmarks have a
+    visibility below 0.5 (:meth:`keyshape.containers.Track.hidden`: a hand over the mouth or an
+    eye): a key is a real frame of the region, never the tracker's guess under a hand. Tracks without
     visibility keep every candidate; so does a region hidden in every candidate.
     """
     if aligned.visibility is None:
         return candidates
-    hidden = (aligned.visibility[np.ix_(candidates, landmarks)] < 0.5).mean(axis=1) > HIDDEN_SHARE
+    hidden = aligned.hidden(landmarks)[candidates]
     return candidates[~hidden] if (~hidden).any() else candidates
 
 
