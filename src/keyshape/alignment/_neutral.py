@@ -80,8 +80,9 @@ class NeutralChoice:
     frame : the neutral frame; rule : "scores", "median" (the automatic rules) or "given";
     check_frame : the other rule's frame (the median-shape rule's; for a median-rule choice the least
     activated frame); distance : the two frames' RMS landmark distance, % of the face scale;
-    activation : the neutral's total expression score and ``median_activation`` the take's median (None without scores); share_below : share of the frames with the whole face
-    in view that are less activated than the neutral; top : its strongest scores (name, value);
+    activation : the neutral's total expression score and ``median_activation`` the take's median
+    (None without scores); share_below : share of the frames with the whole face in view that are
+    less activated than the neutral; top : its strongest scores (name, value);
     confidence : "high", "medium" or "low"; reason : one sentence saying why
     """
 
