@@ -182,6 +182,7 @@ def _to_canonical(points: np.ndarray, poses: Poses) -> np.ndarray:
     for lo in range(0, len(points), _CHUNK):
         hi = lo + _CHUNK
         np.matmul(points[lo:hi] - poses.translations[lo:hi, None, :], scaled[lo:hi], out=out[lo:hi])
+    out.flags.writeable = False  # a Track takes it without a copy
     return out
 
 
