@@ -13,12 +13,13 @@ import numpy as np
 from ..exceptions import MissingDependencyError
 
 __all__ = ["REGION_COLOURS", "OTHER_COLOUR", "region_palette", "landmark_colours", "resize_to_height",
-           "draw_landmarks", "caption", "WeightStrip"]
+           "draw_landmarks", "draw_crosses", "caption", "WeightStrip", "HIDDEN_COLOUR"]
 
 # Okabe–Ito colours (distinguishable with colour-blindness), one per region in order.
 REGION_COLOURS = ((230, 159, 0), (86, 180, 233), (0, 158, 115), (240, 228, 66), (0, 114, 178),
                   (213, 94, 0), (204, 121, 167))
 OTHER_COLOUR = (170, 170, 170)
+HIDDEN_COLOUR = (128, 128, 128)  # a landmark the face does not show (a hand over it): a grey cross
 STRIP_BACKGROUND = (24, 25, 28)
 
 
@@ -91,6 +92,30 @@ def draw_landmarks(image: np.ndarray, points: np.ndarray, colours: np.ndarray, *
     radii = np.broadcast_to(np.asarray(radius, dtype=float), (len(points),))
     for r in np.unique(radii):
         _dots(out, points[radii == r], colours[radii == r], float(r))
+    return out
+
+
+def draw_crosses(image: np.ndarray, points: np.ndarray, colour, *, arm: float = 2.0) -> np.ndarray:
+    """A small ``x`` (one-pixel lines, ``arm`` pixels from the centre) at each of ``points (n, 2)``,
+    drawn onto a copy of ``image`` in ``colour`` (r, g, b).
+
+    Examples
+    --------
+    >>> out = draw_crosses(np.zeros((5, 5, 3), np.uint8), np.array([[2.0, 2.0]]), (9, 9, 9), arm=1)
+    >>> out[..., 0]
+    array([[0, 0, 0, 0, 0],
+           [0, 9, 0, 9, 0],
+           [0, 0, 9, 0, 0],
+           [0, 9, 0, 9, 0],
+           [0, 0, 0, 0, 0]], dtype=uint8)
+    """
+    out = np.array(image, dtype=np.uint8, copy=True)
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    points = points[np.isfinite(points).all(axis=1)]
+    colours = np.tile(np.asarray(colour, np.uint8), (len(points), 1))
+    for diagonal in ((1.0, 1.0), (1.0, -1.0)):
+        offset = arm * np.array(diagonal)
+        _segments(out, points - offset, points + offset, colours)
     return out
 
 

@@ -23,7 +23,8 @@ from ..io.atomic import atomic_path
 from ..schemes import mediapipe_scheme
 from ._backend import make_renderer
 from .camera import frame_points
-from .draw import OTHER_COLOUR, WeightStrip, caption, draw_landmarks, landmark_colours, region_palette, resize_to_height
+from .draw import (HIDDEN_COLOUR, OTHER_COLOUR, WeightStrip, caption, draw_crosses, draw_landmarks, landmark_colours,
+                   region_palette, resize_to_height)
 from .encode import VideoWriter
 
 __all__ = ["render_preview", "rotations_from_quaternions"]
@@ -208,7 +209,13 @@ def _channel_colours(names, keys: KeyShapes | None) -> np.ndarray:
 
 
 class _LandmarkOverlay:
-    """Draws frame ``index``'s landmarks, coloured by region, and a caption."""
+    """Draws frame ``index``'s landmarks, coloured by region, and a caption.
+
+    With the track's ``visibility``, a hidden landmark (visibility < 0.5: a hand over it, the side
+    turned away) is drawn as a grey cross instead of a coloured dot, and a part hidden in the frame
+    (:meth:`Track.hidden <keyshape.containers.Track.hidden>`: the mouth, an eye, or a key region)
+    is named under the caption ("mouth hidden").
+    """
 
     def __init__(self, track: Track, keys: KeyShapes | None, *, scale: float):
         self.track, self.scale = track, scale
@@ -216,14 +223,32 @@ class _LandmarkOverlay:
         self.colours = landmark_colours(regions, track.n_landmarks)
         self.radii = np.where((self.colours == OTHER_COLOUR).all(axis=1), 1.0, 1.6)
         self.edges = _contour_edges(track.n_landmarks)
+        self.hidden = {name: track.hidden(ix) for name, ix in _hidden_parts(track.n_landmarks, regions).items()} \
+            if track.visibility is not None else {}
 
     def __call__(self, image: np.ndarray, index: int) -> np.ndarray:
         points = self.track.points[index, :, :2] * self.scale
         valid = bool(self.track.valid[index])
-        out = draw_landmarks(image, points, self.colours, edges=self.edges, radius=self.radii) if valid else image
+        out = image
+        if valid:
+            hidden = self.track.seen[index] < 0.5  # (n_landmarks,) bool
+            colours = np.where(hidden[:, None], np.array(HIDDEN_COLOUR, np.uint8), self.colours)
+            out = draw_landmarks(image, points, colours, edges=self.edges, radius=np.where(hidden, 1.0, self.radii))
+            out = draw_crosses(out, points[hidden], HIDDEN_COLOUR) if hidden.any() else out
         label = (f"frame {self.track.frame_index[index]}   {self.track.time[index]:6.2f} s"
                  + ("" if valid else "   no face"))
-        return caption(out, label)
+        out = caption(out, label)
+        hidden = [name for name, frames in self.hidden.items() if valid and frames[index]]
+        return caption(out, ", ".join(hidden) + " hidden", xy=(8, 28)) if hidden else out
+
+
+def _hidden_parts(n_landmarks: int, regions: dict) -> dict[str, np.ndarray]:
+    """The parts whose hiding the preview names: MediaPipe's mouth and eyes, else the key regions."""
+    if n_landmarks in (468, 478):
+        contours = mediapipe_scheme()["contours"]
+        return {label: np.asarray(contours[name]) for label, name in
+                (("mouth", "lips"), ("right eye", "right_eye"), ("left eye", "left_eye"))}
+    return {name: np.asarray(ix) for name, ix in regions.items()}
 
 
 def _contour_edges(n_landmarks: int) -> np.ndarray | None:
