@@ -16,7 +16,7 @@ HIDDEN_FRAMES = slice(6, 12)
 
 def _hidden_take():
     """A synthetic take whose second region (half the landmarks) has visibility 0 in frames 6-11."""
-    perf, keys, weights, poses, rig = synthetic_take(n_frames=12, n_missing=0)
+    perf, keys, weights, _, rig = synthetic_take(n_frames=12, n_missing=0)
     region = list(keys.regions)[1]
     visibility = np.ones(perf.track.points.shape[:2])
     visibility[HIDDEN_FRAMES, keys.regions[region]] = 0.0

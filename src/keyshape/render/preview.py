@@ -23,8 +23,17 @@ from ..io.atomic import atomic_path
 from ..schemes import mediapipe_scheme
 from ._backend import make_renderer
 from .camera import frame_points
-from .draw import (HIDDEN_COLOUR, OTHER_COLOUR, WeightStrip, caption, draw_crosses, draw_landmarks, landmark_colours,
-                   region_palette, resize_to_height)
+from .draw import (
+    HIDDEN_COLOUR,
+    OTHER_COLOUR,
+    WeightStrip,
+    caption,
+    draw_crosses,
+    draw_landmarks,
+    landmark_colours,
+    region_palette,
+    resize_to_height,
+)
 from .encode import VideoWriter
 
 __all__ = ["render_preview", "rotations_from_quaternions"]
