@@ -27,9 +27,14 @@ def _frozen(array, dtype=float) -> np.ndarray:
 
 
 def _frozen_owner(array) -> bool:
-    """A float64 ndarray owning its data and read-only: nothing else holds it writable."""
-    return isinstance(array, np.ndarray) and array.dtype == np.float64 and array.flags.owndata \
-        and not array.flags.writeable
+    """A read-only float64 ndarray owning its data, or a read-only view of one (a frozen Track's
+    slice): nothing holds it writable, so it needs no copy."""
+    if not isinstance(array, np.ndarray) or array.dtype != np.float64 or array.flags.writeable:
+        return False
+    base = array
+    while isinstance(base.base, np.ndarray):
+        base = base.base
+    return base.base is None and not base.flags.writeable
 
 
 def blend(base: np.ndarray, deltas: np.ndarray, weights: np.ndarray) -> np.ndarray:
