@@ -2,6 +2,12 @@
 
     python benchmarks/bench_track.py                 # speed on the demo clip, memory at 1 and 5 min
     python benchmarks/bench_track.py --minutes 1 5 60  # add a one-hour input (about 25 min here)
+    python benchmarks/bench_track.py --repeats 0 --minutes --processes 0 2   # whole processes only
+
+Whole processes (``--processes``): the bare loop as a script and ``keyshape track --workers N``
+for N = 1, 2, 4, each a fresh interpreter (imports, model start-up and writing included), on the
+demo clip and on it looped to each ``--processes`` length in minutes (0 = the clip itself),
+alternated, best of ``--process-repeats``.
 
 Speed: frames/s of the product's tracker (``track_to_file``: decode thread + MediaPipe + the
 per-frame bookkeeping + writing the track) and of the obvious baseline (a plain loop of PyAV
@@ -63,6 +69,38 @@ def speed(repeats: int) -> tuple[float, float]:
     return best["bare"], best["ours"]
 
 
+BARE_SCRIPT = """
+import sys
+sys.path[:0] = {path!r}
+from bench_track import bare_loop
+from pathlib import Path
+bare_loop(Path(sys.argv[1]))
+"""
+
+
+def whole_processes(video: Path, folder: Path, repeats: int) -> dict[str, float]:
+    """Best wall seconds of each command as a fresh process on ``video``."""
+    script = folder / "bare.py"
+    script.write_text(BARE_SCRIPT.format(path=[str(Path(__file__).parent)]))
+    commands = {"bare loop": [sys.executable, str(script), str(video)]}
+    for workers in (1, 2, 4):
+        commands[f"keyshape track --workers {workers}"] = [
+            sys.executable, "-m", "keyshape", "track", str(video), "-o", str(folder / "w.npz"), "-q",
+            "--workers", str(workers)]
+    best = dict.fromkeys(commands, float("inf"))
+    for _ in range(repeats):
+        for name, command in commands.items():
+            start = time.perf_counter()
+            subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+            best[name] = min(best[name], time.perf_counter() - start)
+    return best
+
+
+def load_average() -> str:
+    with open("/proc/loadavg") as fh:
+        return " ".join(fh.read().split()[:3])
+
+
 def looped(minutes: float, folder: Path) -> Path:
     """The demo clip repeated to ``minutes`` long, by remuxing its packets."""
     import av
@@ -100,12 +138,33 @@ def peak_rss_mib(video: Path, folder: Path) -> tuple[float, float, int]:
     return usage.ru_maxrss / 1024, time.perf_counter() - start, frames
 
 
+def probe_frames(video: Path) -> int:
+    from keyshape.capture import probe
+
+    return probe(video).n_frames
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--minutes", type=float, nargs="*", default=[1, 5])
+    parser.add_argument("--processes", type=float, nargs="*", default=[0, 2],
+                        help="lengths (minutes, 0 = the clip) for the whole-process comparison")
+    parser.add_argument("--process-repeats", type=int, default=3)
     args = parser.parse_args()
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+          f"load average {load_average()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for minutes in args.processes:
+            video = looped(minutes, Path(tmp)) if minutes else CLIP
+            best = whole_processes(video, Path(tmp), args.process_repeats)
+            frames = probe_frames(video)
+            bare = best["bare loop"]
+            print(f"\nwhole processes on {video.name} ({frames} frames), best of {args.process_repeats}, "
+                  f"load average after: {load_average()}\n")
+            print("| command | seconds | frames/s | vs bare loop |\n|---|---|---|---|")
+            for name, seconds in best.items():
+                print(f"| {name} | {seconds:.2f} | {frames / seconds:.1f} | {bare / seconds:.2f}x |", flush=True)
     if args.repeats > 0:
         bare, fast = speed(args.repeats)
         print("\n| tracker | frames/s | ratio |\n|---|---|---|")
