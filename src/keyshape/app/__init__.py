@@ -17,7 +17,7 @@ from importlib import import_module
 _LAZY = {
     **dict.fromkeys(("discover_keys", "extend_keys", "coverage", "Coverage", "solve_take", "Solved",
                      "fit_errors", "head_poses", "head_and_gaze", "arkit_scores", "key_scores"), "_pipeline"),
-    **dict.fromkeys(("run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES"), "_run"),
+    **dict.fromkeys(("run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES", "default_character_extras"), "_run"),
     **dict.fromkeys(("batch", "BatchRow", "find_takes", "format_table", "is_complete", "make_runner",
                      "VIDEO_SUFFIXES", "write_summary", "SequentialRunner"), "_batch"),
     **dict.fromkeys(("RayRunner", "ray_available"), "_ray"),

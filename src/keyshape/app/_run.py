@@ -29,7 +29,7 @@ from ..defaults import (
 from ..exceptions import InputError
 from ..io.atomic import staged_folder
 
-__all__ = ["RunOptions", "TakeSummary", "run_take", "OUTPUT_FILES"]
+__all__ = ["RunOptions", "TakeSummary", "run_take", "OUTPUT_FILES", "default_character_extras"]
 
 OUTPUT_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
 # every file a run may write: in a reused folder, those this run did not write are removed
@@ -188,7 +188,7 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
     colours = None
     if options.rig is None:  # the stylised head: its colours, and its eyes turned by the gaze targets
-        anim, colours = _default_character_extras(anim, solved.gaze)
+        anim, colours = default_character_extras(anim, solved.gaze)
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes, colours=colours)
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
@@ -197,7 +197,7 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     (stage / ".character.glb").unlink(missing_ok=True)
 
 
-def _default_character_extras(anim, gaze):
+def default_character_extras(anim, gaze):
     """The built-in head's animation with its gaze targets driven by ``gaze`` (if any), and its colours."""
     import dataclasses
 

@@ -85,7 +85,7 @@ def read_patches(rgb: np.ndarray, points: np.ndarray) -> np.ndarray:
     rotation = np.array([[c, -s], [s, c]])
     offsets = _grid() * PATCH_RADIUS * size @ rotation.T  # (g, 2)
     at = xy[:, None, :] + offsets[None]  # (n_landmarks, g, 2)
-    return (_bilinear(rgb.astype(np.float32) / 255.0, at[..., 0], at[..., 1])).astype(np.float32)
+    return (_bilinear(rgb, at[..., 0], at[..., 1]) / 255.0).astype(np.float32)  # only the samples as floats
 
 
 def _distances(patches: np.ndarray, exemplars: np.ndarray) -> np.ndarray:
@@ -176,20 +176,28 @@ def facing(points: np.ndarray) -> np.ndarray:
 
 
 def visibility_from_patches(patches_sample: np.ndarray, patches: np.ndarray, points: np.ndarray,
-                            *, neighbours: np.ndarray | None = None) -> np.ndarray:
+                            *, neighbours: np.ndarray | None = None, unread: np.ndarray | None = None) -> np.ndarray:
     """Visibility from patches: the core of :func:`estimate_visibility`, without video decoding.
 
     Parameters
     ----------
     patches_sample : (n_sample, n_landmarks, g, 3) float, patches of frames with a face
-    patches : (n_frames, n_landmarks, g, 3) float, the frames to score (NaN: no face)
+    patches : (n_frames, n_landmarks, g, 3) float, the frames to score (NaN: no face); read a
+        chunk of frames at a time (``patches[i:j]``), so it may be anything with ``shape`` that
+        slices so (a view of a spool on disk)
     points : (n_frames, n_landmarks, 2 or 3) float, the track's pixels
+    unread : (n_frames,) bool, optional, keyword-only
+        Frames whose patches were not read (a live recording's calibration frames): scored as
+        a frame without a face is, typical.
 
     Returns
     -------
     (n_frames, n_landmarks) float32 in [0, 1]; 1 where there is no face (nothing to hide).
     """
-    return _visibility(_Reference(patches_sample).z(patches), points, neighbours)
+    z = _Reference(patches_sample).z(patches)
+    if unread is not None:
+        z[np.asarray(unread, bool)] = np.nan
+    return _visibility(z, points, neighbours)
 
 
 def _visibility(z: np.ndarray, points: np.ndarray, neighbours: np.ndarray | None = None) -> np.ndarray:

@@ -151,7 +151,7 @@ def _session(args, source, keys):
     if args.record:
         outputs.append(Recorder(args.record, keys, fps=source.fps, image_size=source.size, rig=targets.rig,
                                 mapping=None if targets.builtin else targets.mapping,
-                                source=source.spec, blendshape_names=BLENDSHAPE_NAMES))
+                                source=source.spec, blendshape_names=BLENDSHAPE_NAMES, builtin=targets.builtin))
     if args.view:
         from ..viewer.live import LiveView
 

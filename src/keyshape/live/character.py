@@ -54,6 +54,7 @@ def live_targets(keys: KeyShapes, *, rig: Path | None = None, mapping: Path | No
 
 
 def _builtin(keys: KeyShapes) -> Rig:
-    from ..targets import default_character
+    """The stylised head with a target per key and its gaze targets, as ``keyshape run`` writes it."""
+    from ..targets import default_character, with_gaze_targets
 
-    return default_character(keys)
+    return with_gaze_targets(default_character(keys))

@@ -5,7 +5,9 @@ source's frame number: a frame the loop dropped, or one without a face, is a NaN
 track keeps the source's timing. When the session ends — the source ended or failed, Ctrl-C,
 SIGTERM — the spool becomes, in ``DIR``:
 
-* ``track.npz`` — MediaPipe's landmarks, scores and head matrices of every frame;
+* ``track.npz`` — MediaPipe's landmarks, scores and head matrices of every frame, and the
+  landmarks' visibility (a hand over the mouth: :mod:`keyshape.capture.visibility`, from colour
+  patches read around the landmarks of each frame as it comes and scored when the session ends);
 * ``keys.json`` — the key set used (the calibrated one with ``--calibrate``);
 * ``weights.csv`` — the key weights as they were sent live (causal, smoothed);
 * ``animation.glb`` — the character driven by those weights, with the head and eye rotations;
@@ -43,14 +45,18 @@ class Recorder:
     image_size : (width, height)
     rig : Rig and mapping : Mapping, for ``animation.glb`` (default: the built-in character)
     source : Path or str, recorded in ``take.json``
+    builtin : bool
+        Whether ``rig`` is keyshape's stylised head (:func:`keyshape.live.live_targets`' ``builtin``):
+        the animation then gets its colours and its eyes turned by the gaze, as ``keyshape run``'s.
     """
 
     def __init__(self, folder, keys: KeyShapes, *, fps: float, image_size, rig: Rig | None = None,
-                 mapping=None, source=None, blendshape_names: tuple[str, ...] = ()):
+                 mapping=None, source=None, blendshape_names: tuple[str, ...] = (), builtin: bool = False):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.keys, self.fps, self.image_size = keys, float(fps), tuple(image_size)
         self.rig, self.mapping, self.source = rig, mapping, source
+        self.builtin = builtin or rig is None
         self.blendshape_names = tuple(blendshape_names)
         self._spool = Path(tempfile.mkdtemp(prefix=".live-spool-", dir=self.folder))
         self._stack = ExitStack()
@@ -58,6 +64,8 @@ class Recorder:
                        for name in ("points", "scores", "matrix", "weights")}
         self._sizes = {"points": keys.n_landmarks * 3, "scores": len(blendshape_names) or 52,
                        "matrix": 16, "weights": keys.n_keys}
+        self._patches = self._stack.enter_context(open(self._spool / "patches.u8", "wb"))  # noqa: SIM115
+        self._read: list[bool] = []  # per frame: whether its patches were read
         self.n_frames = 0
         self.files: tuple[Path, ...] = ()
 
@@ -65,7 +73,7 @@ class Recorder:
         while self.n_frames < frame.index:  # frames the loop dropped: gaps
             self._write(None, None)
         if frame.index == self.n_frames:
-            self._write(frame.detection if frame.face else None, frame.keys)
+            self._write(frame.detection if frame.face else None, frame.keys, frame.rgb)
 
     def calibration(self, frames, keys: np.ndarray) -> None:
         """Record the calibration's ``(index, detection)`` frames (before the session's first frame)."""
@@ -75,7 +83,7 @@ class Recorder:
             if index == self.n_frames:
                 self._write(detection, keys)
 
-    def _write(self, detection, keys) -> None:
+    def _write(self, detection, keys, rgb=None) -> None:
         parts = {"points": None, "scores": None, "matrix": None, "weights": keys}
         if detection is not None:
             parts.update(points=detection.points, scores=detection.scores, matrix=detection.matrix)
@@ -85,7 +93,33 @@ class Recorder:
             if value is None or np.size(value) != size:
                 value = np.full(size, _NAN)
             fh.write(np.asarray(value, dtype=np.float32).tobytes())
+        self._write_patches(parts["points"], rgb)
         self.n_frames += 1
+
+    def _write_patches(self, points, rgb) -> None:
+        """The frame's colour patches around its landmarks, as uint8 (about 4 ms a frame at 720p)."""
+        from ..capture.visibility import PATCH_GRID, read_patches
+
+        read = points is not None and rgb is not None and np.size(points) == self._sizes["points"] \
+            and np.isfinite(points).all()
+        patches = np.zeros((self.keys.n_landmarks, PATCH_GRID ** 2, 3), np.uint8)
+        if read:
+            patches = np.round(read_patches(rgb, np.reshape(points, (-1, 3))) * 255).astype(np.uint8)
+        self._patches.write(patches.tobytes())
+        self._read.append(read)
+
+    def _visibility(self, points: np.ndarray) -> np.ndarray | None:
+        """(n_frames, n_landmarks) visibility from the spooled patches; None with no frame read."""
+        from ..capture.visibility import N_SAMPLE, PATCH_GRID, visibility_from_patches
+
+        read = np.array(self._read, bool)
+        if not read.any():
+            return None
+        patches = np.memmap(self._spool / "patches.u8", dtype=np.uint8, mode="r",
+                            shape=(self.n_frames, self.keys.n_landmarks, PATCH_GRID ** 2, 3))
+        frames = np.flatnonzero(read)
+        sample = frames[np.linspace(0, len(frames) - 1, min(N_SAMPLE, len(frames))).astype(int)]
+        return visibility_from_patches(_Unit(patches)[sample], _Unit(patches), points, unread=~read)
 
     def _arrays(self) -> dict[str, np.ndarray]:
         return {name: np.fromfile(self._spool / f"{name}.f32", dtype=np.float32).reshape(self.n_frames, size)
@@ -105,8 +139,9 @@ class Recorder:
 
         n = self.n_frames
         names = self.blendshape_names or None
-        track = Track(arrays["points"].reshape(n, -1, 3), self.fps, self.image_size,
-                      arrays["scores"] if names else None, names or (), arrays["matrix"].reshape(n, 4, 4))
+        points = arrays["points"].reshape(n, -1, 3)
+        track = Track(points, self.fps, self.image_size, arrays["scores"] if names else None, names or (),
+                      arrays["matrix"].reshape(n, 4, 4), visibility=self._visibility(points))
         weights = Weights(arrays["weights"].astype(float), self.keys.names, self.fps)
         out = self.folder
         save_track(track, out / "track.npz")
@@ -120,12 +155,26 @@ class Recorder:
         return (*written, out / "take.json")
 
     def _animation(self, track: Track, weights: Weights, path: Path) -> None:
-        from ..app import solve_take
+        from ..app import default_character_extras, solve_take
         from ..io import export
-        from ..targets import Mapping, default_character, retarget
+        from ..targets import GAZE_NAMES, Mapping, default_character, retarget, with_gaze_targets
 
-        rig = self.rig if self.rig is not None else default_character(self.keys)
-        mapping = self.mapping if self.mapping is not None else Mapping.by_name(self.keys.names, rig.names)
+        rig = self.rig if self.rig is not None else with_gaze_targets(default_character(self.keys))
+        mapping = self.mapping if self.mapping is not None else \
+            Mapping.by_name(self.keys.names, rig.names, allow_extra=self.builtin)  # the gaze targets: no key
         solved = solve_take(track, self.keys, smoothness=0.0)  # head poses and gaze of every frame
         eyes = solved.gaze.rotations() if solved.gaze is not None else None
-        export(retarget(weights, mapping), path, rig=rig, poses=solved.poses, eyes=eyes)
+        anim, colours = retarget(weights, mapping), None
+        if self.builtin and set(GAZE_NAMES) <= set(rig.names):  # the stylised head, as keyshape run writes it
+            anim, colours = default_character_extras(anim, solved.gaze)
+        export(anim, path, rig=rig, poses=solved.poses, eyes=eyes, colours=colours)
+
+
+class _Unit:
+    """uint8 patches ``(n_frames, ...)`` read, a slice at a time, as float32 in [0, 1] (as read_patches gives)."""
+
+    def __init__(self, patches: np.ndarray):
+        self.patches, self.shape = patches, patches.shape
+
+    def __getitem__(self, frames) -> np.ndarray:
+        return self.patches[frames].astype(np.float32) / np.float32(255.0)

@@ -4,7 +4,8 @@ The page is the same as ``keyshape view``'s; ``/api/take`` says ``"live": true``
 opens a WebSocket on ``/live`` (RFC 6455, server to page only) instead of playing a video:
 
 * a text message per solved frame: ``{"frame", "time", "face", "names", "weights", "head"}``
-  (weights in ``names`` order, the head rotation as a glTF-axis quaternion ``[x, y, z, w]``);
+  (weights in ``names`` order, the head rotation as a glTF-axis quaternion ``[x, y, z, w]``; for
+  keyshape's own head the key weights and the gaze targets' weights from the eye rotations);
 * a binary message with the camera image as JPEG, at most :data:`IMAGE_RATE` times a second
   and at most 640 pixels wide (the weights go every frame; the pictures only as fast as they help).
 
@@ -34,7 +35,7 @@ import numpy as np
 from ..containers import Rig, Weights
 from .server import Take, ViewerServer, _Handler
 
-__all__ = ["LiveView", "IMAGE_RATE", "websocket_accept"]
+__all__ = ["LiveView", "IMAGE_RATE", "websocket_accept", "gaze_from_eyes"]
 
 IMAGE_RATE = 15.0  # camera pictures per second, at most
 _GUID = "258EAFA5-E914-47DA-95CA-C5AB0DC85B11"  # RFC 6455, section 1.3
@@ -63,6 +64,25 @@ def _ws_frame(opcode: int, payload: bytes) -> bytes:
     return head + payload
 
 
+def gaze_from_eyes(eyes) -> np.ndarray:
+    """The stylised head's gaze-target weights ``(8,)`` (:data:`keyshape.targets.GAZE_NAMES`) of a live
+    frame's eye rotations ``eyes (2, 4)`` (glTF-axis quaternions, LEFT eye first; None: straight ahead).
+
+    Each eye's rest direction (+Z in glTF axes) turned by its rotation gives yaw and pitch in
+    degrees, as :class:`keyshape.capture.Gaze` measures them, for :func:`keyshape.targets.gaze_weights`.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from ..targets import gaze_weights
+
+    if eyes is None or not np.isfinite(eyes).all():
+        return np.zeros(8)
+    ahead = Rotation.from_quat(np.asarray(eyes, float)[::-1]).apply([0.0, 0.0, 1.0])  # (right, left) x (x, y, z)
+    yaw = np.degrees(np.arctan2(ahead[:, 0], ahead[:, 2]))
+    pitch = np.degrees(np.arcsin(np.clip(ahead[:, 1], -1.0, 1.0)))
+    return gaze_weights(yaw[None], pitch[None])[0]
+
+
 class LiveView:
     """An :class:`~keyshape.live.frame.Output` serving the live page on ``url``.
 
@@ -74,17 +94,23 @@ class LiveView:
     port : int (0: any free port)
     key_names : tuple of str, optional
         When the character is keyshape's own head (targets named after the keys), the names of
-        ``frame.keys``: the page is then driven by the key weights.
+        ``frame.keys``: the page is then driven by the key weights, the head drawn in its colours
+        and, when the rig has them (:func:`keyshape.targets.with_gaze_targets`), its eyes turned by
+        ``frame.eyes`` through the gaze targets.
     name : str, shown as the take's name
     """
 
     def __init__(self, rig: Rig, *, fps: float, port: int = 0, key_names=None, name: str = "live",
                  host: str = "127.0.0.1"):
         from ..io.gltf import write_glb
+        from ..targets import GAZE_NAMES, stylised_head
 
         self._folder = Path(tempfile.mkdtemp(prefix="keyshape-live-view-"))
         glb = self._folder / "character.glb"
-        write_glb(glb, rig, Weights(np.zeros((1, len(rig.names))), rig.names, fps))
+        builtin = key_names is not None and rig.n_vertices == stylised_head().rig.n_vertices
+        write_glb(glb, rig, Weights(np.zeros((1, len(rig.names))), rig.names, fps),
+                  colours=stylised_head().colours if builtin else None)
+        self._gaze = tuple(GAZE_NAMES) if builtin and set(GAZE_NAMES) <= set(rig.names) else ()
         take = Take(self._folder, float(fps), 1, files={glb.name: glb}, animation=glb.name)
         self.name, self.key_names = name, tuple(key_names) if key_names is not None else None
         self._changed = threading.Condition()
@@ -124,6 +150,8 @@ class LiveView:
         """The page's JSON for one frame."""
         if self.key_names is not None:
             names, values = self.key_names, np.nan_to_num(frame.keys, nan=0.0)
+            if self._gaze:
+                names, values = (*names, *self._gaze), np.concatenate([values, gaze_from_eyes(frame.eyes)])
         else:
             names, values = frame.names, frame.values
         return json.dumps({"frame": int(frame.index), "time": round(float(frame.time), 4), "face": bool(frame.face),

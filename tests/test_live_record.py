@@ -1,0 +1,178 @@
+"""A live recording keeps what an offline take has: the landmarks' visibility (a hand over the mouth),
+and the built-in head's colours and gaze targets in its animation (and in the live viewer's page)."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from keyshape.containers import KeyShapes
+from keyshape.datasets import make_performance
+from keyshape.live import LiveFrame, Recorder
+from keyshape.schemes import mediapipe_scheme
+
+LIPS = np.array(mediapipe_scheme()["contours"]["lips"])
+COVERED = slice(20, 30)
+
+
+def _keys(perf) -> KeyShapes:
+    names = tuple(f"{r}_{i}" for i, r in enumerate(perf.key_regions))
+    return KeyShapes(perf.neutral, perf.key_deltas, names, np.zeros(perf.n_keys, int), perf.key_regions,
+                     perf.regions, stable=perf.stable)
+
+
+def _face(points: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """(480, 640, 3) uint8: a "face" that moves with the landmarks, a disc of its own colour at each."""
+    from keyshape.render.draw import draw_landmarks
+
+    return draw_landmarks(np.full((480, 640, 3), 90, np.uint8), points[:, :2], colours, radius=4.0)
+
+
+def _frames(perf, keys, *, cover: bool = True):
+    """LiveFrames of ``perf``: its "face", with a flat "hand" over the lips in frames 20-29."""
+    colours = np.random.default_rng(0).integers(0, 256, (perf.track.n_landmarks, 3)).astype(np.uint8)
+    for index, points in enumerate(perf.track.points):
+        rgb = _face(points, colours)
+        if cover and COVERED.start <= index < COVERED.stop:
+            lo, hi = np.floor(points[LIPS, :2].min(axis=0)).astype(int) - 6, np.ceil(
+                points[LIPS, :2].max(axis=0)).astype(int) + 6
+            rgb[lo[1]:hi[1], lo[0]:hi[0]] = (200, 150, 120)
+        detection = SimpleNamespace(points=points, scores=np.zeros(52), matrix=np.eye(4))
+        yield LiveFrame(index, index / 30, 0.0, keys.names, np.zeros(keys.n_keys), np.zeros(keys.n_keys),
+                        np.array([0.0, 0, 0, 1]), None, True, rgb, detection)
+
+
+@pytest.fixture(scope="module")
+def perf():
+    return make_performance(n_frames=60, n_landmarks=478, noise=0.1, random_state=4)
+
+
+def _record(folder, perf, frames, **options):
+    from keyshape.io import load_track
+
+    keys = _keys(perf)
+    recorder = Recorder(folder, keys, fps=30, image_size=(640, 480), **options)
+    for frame in frames:
+        recorder.send(frame)
+    recorder.close()
+    return load_track(folder / "track.npz")
+
+
+def test_a_recording_keeps_the_visibility_of_a_covered_mouth(tmp_path, perf):
+    keys = _keys(perf)
+    track = _record(tmp_path / "rec", perf, _frames(perf, keys))
+    assert track.visibility is not None and track.visibility.shape == (60, 478)
+    mouth = track.visibility[:, LIPS].mean(axis=1)
+    covered = np.zeros(60, bool)
+    covered[COVERED] = True
+    assert (mouth[covered] < 0.5).all(), mouth[covered]
+    assert (mouth[~covered][1:-1] >= 0.5).mean() >= 0.95  # (the frames next to the hand share its 3-frame mean)
+    assert track.hidden(LIPS)[covered].all()
+    assert not list((tmp_path / "rec").glob(".live-spool-*"))  # the spool (patches too) is gone
+
+
+def test_the_recorded_visibility_is_the_offline_one_on_the_same_patches(tmp_path, perf):
+    """The same numbers as :func:`visibility_from_patches` on the frames' float patches (uint8 spool)."""
+    from keyshape.capture.visibility import read_patches, visibility_from_patches
+
+    keys = _keys(perf)
+    frames = list(_frames(perf, keys))
+    track = _record(tmp_path / "rec", perf, frames)
+    patches = np.stack([read_patches(f.rgb, f.detection.points) for f in frames])
+    offline = visibility_from_patches(patches, patches, perf.track.points)
+    difference = np.abs(track.visibility - offline)  # uint8 rounding; the synthetic discs' spread is tiny
+    assert difference.mean() < 0.005 and ((track.visibility < 0.5) == (offline < 0.5)).mean() > 0.995
+
+
+@pytest.mark.slow
+def test_a_recording_of_the_real_clip_has_the_offline_visibility(real_track, demo_clip, tmp_path):
+    """The embedded clip played through the recorder as the live loop would (its frames, MediaPipe's
+    landmarks): the visibility is the one ``keyshape track`` estimates, the covered mouth hidden."""
+    from keyshape.capture.video import iter_frames
+    from keyshape.io import load_track
+
+    assert real_track.visibility is not None
+    keys = _keys(make_performance(n_frames=10, n_landmarks=478, random_state=0))
+    recorder = Recorder(tmp_path / "rec", keys, fps=real_track.fps, image_size=real_track.image_size)
+    for index, (_, rgb) in zip(range(real_track.n_frames), iter_frames(demo_clip)):
+        points = real_track.points[index]
+        face = bool(np.isfinite(points).all())
+        detection = SimpleNamespace(points=points, scores=np.zeros(52), matrix=np.eye(4)) if face else None
+        recorder.send(LiveFrame(index, index / real_track.fps, 0.0, keys.names, np.zeros(keys.n_keys),
+                                np.zeros(keys.n_keys), np.array([0.0, 0, 0, 1]), None, face, rgb, detection))
+    recorder.close()
+    recorded = load_track(tmp_path / "rec" / "track.npz")
+    assert recorded.n_frames == real_track.n_frames
+    difference = np.abs(recorded.visibility - real_track.visibility)
+    print(f"recorded vs offline visibility: mean difference {difference.mean():.4f}, max {difference.max():.3f}")
+    assert difference.mean() < 0.01
+    assert (recorded.hidden(LIPS) == real_track.hidden(LIPS)).mean() >= 0.98  # borderline frames may flip
+    assert 100 < recorded.hidden(LIPS).sum() < 250  # the hand over the mouth (frames 58-227 by eye)
+
+
+def test_frames_without_a_picture_count_as_seen_and_none_at_all_record_none(tmp_path, perf):
+    keys = _keys(perf)
+    recorder = Recorder(tmp_path / "cal", keys, fps=30, image_size=(640, 480))
+    detections = [(i, SimpleNamespace(points=p, scores=np.zeros(52), matrix=np.eye(4)))
+                  for i, p in enumerate(perf.track.points[:10])]
+    recorder.calibration(detections, np.zeros(keys.n_keys))  # the calibration: detections, no pictures
+    for frame in list(_frames(perf, keys))[10:]:
+        recorder.send(frame)
+    recorder.close()
+    from keyshape.io import load_track
+
+    track = load_track(tmp_path / "cal" / "track.npz")
+    assert track.visibility is not None and track.visibility[:9].mean() > 0.9 and not track.hidden(LIPS)[:10].any()
+    assert track.hidden(LIPS)[COVERED].all()
+    blind = [LiveFrame(f.index, f.time, 0.0, f.names, f.values, f.keys, f.head, None, True, None, f.detection)
+             for f in _frames(perf, keys, cover=False)]
+    assert _record(tmp_path / "blind", perf, blind).visibility is None  # no pictures: none, not all-seen
+
+
+def test_a_recording_of_the_builtin_head_has_its_colours_and_gaze_targets(tmp_path, perf):
+    from keyshape.io.gltf import read_colours, read_glb_animation
+    from keyshape.live import live_targets
+    from keyshape.targets import GAZE_NAMES, stylised_head
+
+    keys = _keys(perf)
+    targets = live_targets(keys, need_rig=True)
+    assert targets.builtin and set(GAZE_NAMES) <= set(targets.rig.names)
+    _record(tmp_path / "rec", perf, _frames(perf, keys), rig=targets.rig, builtin=True)
+    glb = tmp_path / "rec" / "animation.glb"
+    colours = read_colours(glb)
+    head = stylised_head().colours
+    assert colours.shape[0] == len(head) and np.ptp(colours[:, :3], axis=0).max() > 0.3  # not one clay colour
+    animation = read_glb_animation(glb)
+    assert set(GAZE_NAMES) <= set(animation.names)
+
+
+def test_the_live_page_draws_the_builtin_head_in_colour_with_its_eyes_turned(perf):
+    from scipy.spatial.transform import Rotation
+
+    from keyshape.capture.gaze import Gaze
+    from keyshape.io.gltf import read_colours
+    from keyshape.live import live_targets
+    from keyshape.schemes import rotations_to_gltf
+    from keyshape.targets import GAZE_NAMES, gaze_weights
+    from keyshape.viewer.live import LiveView
+
+    keys = _keys(perf)
+    targets = live_targets(keys, need_rig=True)
+    view = LiveView(targets.rig, fps=30, key_names=keys.names)
+    try:
+        colours = read_colours(view._folder / "character.glb")
+        assert np.ptp(colours[:, :3], axis=0).max() > 0.3
+        gaze = Gaze(np.array([[12.0, -5.0]]), np.array([[7.0, -9.0]]))  # (right, left) eye, degrees
+        eyes = Rotation.from_matrix(rotations_to_gltf(gaze.rotations()[0])).as_quat()  # as the live solver sends
+        frame = next(_frames(perf, keys))
+        message = json.loads(view.message(LiveFrame(0, 0.0, 0.0, keys.names, frame.values, frame.keys, frame.head,
+                                                    eyes, True, frame.rgb)))
+        assert message["names"] == [*keys.names, *GAZE_NAMES]
+        np.testing.assert_allclose(message["weights"][keys.n_keys:], gaze_weights(gaze.yaw, gaze.pitch)[0], atol=1e-4)
+        still = json.loads(view.message(frame))  # no gaze known: eyes ahead
+        assert still["weights"][keys.n_keys:] == [0.0] * len(GAZE_NAMES)
+    finally:
+        view.close()
