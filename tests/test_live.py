@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from test_viewer import browser  # noqa: F401 - Debian's Chromium under Playwrig
 
 from keyshape.containers import KeyShapes
 from keyshape.datasets import make_performance
-from keyshape.exceptions import InputError, RigError
+from keyshape.exceptions import ConvergenceWarning, InputError, RigError
 from keyshape.io.livelink import LIVELINK_NAMES, ROTATION_NAMES
 from keyshape.live import (
     Controls,
@@ -390,9 +391,15 @@ def test_sigterm_stops_cleanly_and_keeps_the_recording(demo_clip, clip_keys, tmp
     recorded, keys = load_track(folder / "track.npz"), load_keys(folder / "keys.json")
     assert recorded.n_frames == info["n_frames"] and recorded.valid.mean() >= 0.9
     sent = load_weights_csv(folder / "weights.csv")
-    again = solve_take(recorded, keys)  # re-solved offline with the zero-lag smoother
-    both = recorded.valid & np.isfinite(sent.values).all(axis=1)
-    assert np.isfinite(again.weights.values[recorded.valid]).all() and both.sum() > 10
+    with warnings.catch_warnings():  # a take cut mid-occlusion: the weighted smoother may stop short (decompose/)
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        again = solve_take(recorded, keys)  # re-solved offline with the zero-lag smoother
+    assert recorded.visibility is not None  # the hand over the mouth from frame 58 on: hidden, as offline
+    hidden = np.any([recorded.hidden(ix) for ix in keys.regions.values()], axis=0)
+    assert hidden[60:].mean() > 0.8
+    seen = recorded.valid & ~hidden  # (a take cut while a region is hidden has no weights at its end)
+    both = seen & np.isfinite(sent.values).all(axis=1)
+    assert np.isfinite(again.weights.values[seen]).all() and both.sum() > 10
     assert np.corrcoef(sent.values[both].ravel(), again.weights.values[both].ravel())[0, 1] > 0.9
     assert read_glb_animation(folder / "animation.glb").weights.shape[0] == recorded.n_frames
 
