@@ -193,8 +193,15 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
                source=source, eyes=eyes)
-    save_take_info(stage / "take.json", video=video, track=track, keys=keys)
+    save_take_info(stage / "take.json", video=video, track=track, keys=keys,
+                   neutral=_neutral_file(options, keys))
     (stage / ".character.glb").unlink(missing_ok=True)
+
+
+def _neutral_file(options, keys: KeyShapes) -> Path | None:
+    """The still image or clip the keys' neutral comes from (``--neutral FILE``), if it does."""
+    neutral = options.neutral
+    return neutral if isinstance(neutral, Path) and keys.neutral_take == neutral.name else None
 
 
 def default_character_extras(anim, gaze):

@@ -85,7 +85,8 @@ def sculpt_targets(keys: KeyShapes, neutral: Rig, *, propose: Proposer | None = 
 
 
 def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit: float = 1.0,
-                     meshes=None, propose: Proposer | None = None, overwrite: bool = False) -> SculptKit:
+                     meshes=None, propose: Proposer | None = None, overwrite: bool = False,
+                     neutral_source=None) -> SculptKit:
     """Write the sculpt kit for ``keys`` on the character ``rig`` into ``folder``.
 
     Parameters
@@ -109,6 +110,9 @@ def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit:
     overwrite : bool, keyword-only
         Replace a kit already in ``folder``. By default a folder holding any of the kit's files
         is refused: its ``sculpt.glb`` may be an artist's work.
+    neutral_source : str or Path, optional, keyword-only
+        The still image or clip the keys' neutral comes from (``--neutral FILE``; ``take.json``'s
+        ``neutral_source``): the contact sheet shows it as the neutral (see :func:`contact_sheet`).
 
     Returns
     -------
@@ -124,7 +128,7 @@ def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit:
     targets = sculpt_targets(keys, neutral, propose=propose)
     with staged_folder(folder) as stage:
         _write_glb(rig if is_gltf else None, stage / GLB, targets, meshes)
-        contact_sheet(keys, track, video, stage / SHEET)
+        contact_sheet(keys, track, video, stage / SHEET, neutral_source=neutral_source)
         _write_readme(stage / README, keys, track, Path(video), rig, targets)
     return SculptKit(folder, folder / GLB, folder / SHEET, folder / README)
 
@@ -138,10 +142,12 @@ def check_kit_folder(folder, *, overwrite: bool = False) -> None:
 
 
 def _check_track(keys: KeyShapes, track: Track) -> None:
+    from ..report import separate_neutral
+
     if track.n_landmarks != keys.n_landmarks:
         raise InputError(f"the track has {track.n_landmarks} landmarks but the keys were made from "
                          f"{keys.n_landmarks}: give the track the keys come from")
-    last = int(max(keys.frames.max(initial=0), keys.neutral_frame))
+    last = int(max(keys.frames.max(initial=0), -1 if separate_neutral(keys) else keys.neutral_frame))
     if last >= track.n_frames:
         raise InputError(f"the keys use frame {last} but the track has {track.n_frames} frames: "
                          "give the track (and video) the keys come from")
@@ -169,8 +175,12 @@ def _write_glb(source: Path | None, path: Path, targets: Rig, meshes) -> Path:
 # --------------------------------------------------------------------------- the contact sheet
 
 
-def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240) -> Path:
+def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240, neutral_source=None) -> Path:
     """Draw the key frames as a PNG: one row per region, the neutral first, landmarks on the video.
+
+    A neutral from a file of its own (``--neutral FILE``: ``keys.neutral_take`` is its name) is
+    that file's picture (a still image, or the clip's frame ``keys.neutral_frame``) when
+    ``neutral_source`` gives the file, else the neutral shape's landmarks alone; its tile is labelled with the file.
 
     Parameters
     ----------
@@ -183,6 +193,8 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
         Output ``.png`` (atomic).
     cell : int, keyword-only
         Side of each square picture, pixels.
+    neutral_source : str or Path, optional, keyword-only
+        The file the neutral comes from (ignored when the neutral is a frame of the take).
 
     Returns
     -------
@@ -190,7 +202,12 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
     """
     from PIL import Image, ImageDraw
 
-    frames = _decode(video, {int(keys.neutral_frame), *(int(f) for f in keys.frames)}, track.frame_index)
+    from ..report import separate_neutral
+
+    separate = separate_neutral(keys)
+    frames = _decode(video, {*(() if separate else (int(keys.neutral_frame),)), *(int(f) for f in keys.frames)},
+                     track.frame_index)
+    rest = _rest_cells(keys, neutral_source, cell) if separate else None
     regions = list(keys.regions)
     columns = 1 + max(len(keys.keys_of(r)) for r in regions)
     label, title = 34, 30
@@ -203,16 +220,36 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
         entries = [("neutral", int(keys.neutral_frame))]
         entries += [(keys.names[k], int(keys.frames[k])) for k in keys.keys_of(region)]
         for column, (name, frame) in enumerate(entries):
-            picture = _cell(frames[frame], track.points[frame, :, :2], keys.regions[region], colour, cell)
+            if rest is not None and column == 0:  # the neutral from its own file
+                picture, where = rest[0](keys.regions[region], colour), rest[1]
+            else:
+                picture = _cell(frames[frame], track.points[frame, :, :2], keys.regions[region], colour, cell)
+                where = f"frame {track.frame_index[frame]}  {track.time[frame]:.2f} s"
             x, y = column * cell, title + row * (cell + label)
             sheet.paste(picture, (x, y))
             caption = f"{name}  ({region})" if name == "neutral" else name
             draw.text((x + 6, y + cell + 2), caption, fill=colour, font=_font(15))
-            draw.text((x + 6, y + cell + 18), f"frame {track.frame_index[frame]}  {track.time[frame]:.2f} s",
-                      fill=(200, 200, 200), font=_font(12))
+            draw.text((x + 6, y + cell + 18), where, fill=(200, 200, 200), font=_font(12))
     with atomic_path(path) as tmp:
         sheet.save(tmp, format="PNG")
     return Path(path)
+
+
+def _rest_cells(keys: KeyShapes, neutral, size: int):
+    """``(draw(region, colour) -> picture, label)`` for a neutral from its own file: the file's
+    picture when ``neutral`` names it and a face is found there, else the neutral shape alone."""
+    from ..capture.video import IMAGE_SUFFIXES
+    from ..report import neutral_picture
+
+    found = neutral_picture(neutral, int(keys.neutral_frame)) if neutral is not None else None
+    still = neutral is not None and Path(neutral).suffix.lower() in IMAGE_SUFFIXES
+    label = keys.neutral_take if still else f"{keys.neutral_take}, frame {int(keys.neutral_frame)}"
+    if found is not None and np.isfinite(found[1]).all():
+        return (lambda region, colour: _cell(found[0], found[1], region, colour, size)), label
+    shape = keys.neutral[:, :2] - keys.neutral[:, :2].min(axis=0)  # the neutral's landmarks on a dark square
+    shape = shape * (0.7 * size / max(float(shape.max()), 1e-9)) + 0.15 * size
+    blank = np.full((size, size, 3), 40, np.uint8)
+    return (lambda region, colour: _cell(blank, shape, region, colour, size)), f"{label} (no picture)"
 
 
 def _font(size: int):
@@ -282,11 +319,26 @@ def _write_readme(path: Path, keys: KeyShapes, track: Track, video: Path, rig: P
     mirrored = "" if not n_mirrored else _MIRRORED.format(n=n_mirrored, example=keys.names[int(keys.mirrored.argmax())],
                                                           source=keys.mirror_of[int(keys.mirrored.argmax())])
     text = _README.format(n_keys=keys.n_keys, video=video.name, rig=rig.name, n_vertices=targets.n_vertices,
-                          neutral=int(keys.neutral_frame), table="\n".join(rows), first=keys.names[0],
+                          neutral=_neutral_sentence(keys, video), table="\n".join(rows), first=keys.names[0],
                           to_sculpt=keys.n_keys - n_mirrored, mirrored=mirrored)
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return path
+
+
+def _neutral_sentence(keys: KeyShapes, video: Path) -> str:
+    """Where the neutral comes from: a frame of the take, or a file of its own (``--neutral FILE``)."""
+    from ..capture.video import IMAGE_SUFFIXES
+    from ..report import separate_neutral
+
+    frame = int(keys.neutral_frame)
+    if not separate_neutral(keys):
+        return f"The neutral frame is {frame}."
+    if Path(keys.neutral_take).suffix.lower() in IMAGE_SUFFIXES:
+        return (f"The neutral is the still image `{keys.neutral_take}` of the actor at rest, "
+                f"not a frame of `{video.name}`.")
+    return (f"The neutral is frame {frame} of `{keys.neutral_take}`, a separate clip of the actor at rest "
+            f"(its frame nearest the clip's median shape), not a frame of `{video.name}`.")
 
 
 _README = """# Sculpt kit: {n_keys} key shapes
@@ -322,7 +374,7 @@ You sculpt {to_sculpt} of them; the others are mirror images of a sculpted one.{
 your file, kept whole, with an animation `keyshape` added (morph weights, and the head rotation on a node
 named like `head`). Other formats: `-o animation.usda` (USD), `--format livelink -o take.csv`.
 
-Units and axes: glTF metres, +Y up, the character facing +Z. The neutral frame is {neutral}.
+Units and axes: glTF metres, +Y up, the character facing +Z. {neutral}
 
 ## Key shapes
 

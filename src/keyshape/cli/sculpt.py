@@ -46,7 +46,8 @@ def run(args) -> None:
     _check_rig(args.rig)
     track = _track(args, video)
     kit = write_sculpt_kit(keys, args.rig, args.output, track=track, video=video,
-                           unit=parse_unit(args.rig_unit), meshes=mesh_choice(args.mesh), overwrite=args.force)
+                           unit=parse_unit(args.rig_unit), meshes=mesh_choice(args.mesh), overwrite=args.force,
+                           neutral_source=_neutral(args))
     if not args.quiet:
         print(f"{kit.folder}: {kit.glb.name} ({keys.n_keys} targets to sculpt), {kit.sheet.name}, "
               f"{kit.readme.name}")
@@ -74,6 +75,16 @@ def _video(args) -> Path:
             raise InputError(f"{info}: names no video; give --video")
         return Path(video)
     raise InputError(f"give --video: the take's video (no take.json beside {args.keys})")
+
+
+def _neutral(args) -> Path | None:
+    """The still image or clip of the keys' neutral (``--neutral FILE`` of the run), from take.json."""
+    if not (args.keys.parent / "take.json").is_file():
+        return None
+    from ..io.take import load_take_info
+
+    source = load_take_info(args.keys.parent).get("neutral_source")
+    return Path(source) if source else None
 
 
 def _track(args, video: Path):

@@ -2,7 +2,8 @@
 
 ``{"format": "keyshape-take", "version": 1, "video": "/abs/path/take.mp4", "fps": 23.976,
 "n_frames": 472, "image_size": [640, 360], "neutral_frame": 12, "files": {"track": "track.npz",
-"keys": "keys.json", "weights": "weights.csv", "animation": "animation.glb"}}``
+"keys": "keys.json", "weights": "weights.csv", "animation": "animation.glb"}}``, and
+``"neutral_source": "/abs/path/rest.png"`` when the neutral comes from a file (``--neutral FILE``).
 """
 
 from __future__ import annotations
@@ -22,12 +23,18 @@ TAKE_FILES = {"track": "track.npz", "keys": "keys.json", "weights": "weights.csv
 
 
 def save_take_info(path: str | Path, *, video: Path, track: Track, keys: KeyShapes,
-                   files: dict[str, str] | None = None) -> Path:
-    """Write the take description beside the outputs, atomically."""
+                   files: dict[str, str] | None = None, neutral: Path | None = None) -> Path:
+    """Write the take description beside the outputs, atomically.
+
+    ``neutral``: the still image or clip of the actor at rest the keys' neutral comes from
+    (``--neutral FILE``), kept as ``"neutral_source"`` so the contact sheets can show it.
+    """
     info = {"format": "keyshape-take", "version": 1, "video": str(Path(video).resolve()),
             "fps": track.fps, "n_frames": track.n_frames,
             "image_size": list(track.image_size) if track.image_size else None,
             "neutral_frame": int(keys.neutral_frame), "files": files or dict(TAKE_FILES)}
+    if neutral is not None:
+        info["neutral_source"] = str(Path(neutral).resolve())
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(info, indent=1) + "\n")
     return Path(path)

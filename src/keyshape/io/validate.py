@@ -343,6 +343,9 @@ def check_take_info(path, info) -> None:
         _whole(path, "neutral_frame", info["neutral_frame"], low=0)
     if info.get("video") is not None and not isinstance(info["video"], str):
         raise _fail(path, "video", f"must be the video's path; got {_show(info['video'])}")
+    if info.get("neutral_source") is not None and not isinstance(info["neutral_source"], str):
+        raise _fail(path, "neutral_source", f"must be the neutral image's or clip's path; got "
+                                            f"{_show(info['neutral_source'])}")
     files = info.get("files", {})
     if not isinstance(files, dict) or not all(isinstance(k, str) and isinstance(v, str) and v
                                               for k, v in files.items()):

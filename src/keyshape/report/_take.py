@@ -25,6 +25,7 @@ from ..exceptions import InputError
 from ..schemes import stable_points
 from ._fit import HULL_TOLERANCE, FitQuality, face_scale, fit_quality, gap_runs, take_numbers
 from ._html import data_uri, write_report
+from ._neutral import neutral_picture, separate_neutral
 
 __all__ = ["FitQuality", "fit_quality", "face_scale", "gap_runs", "take_numbers", "write_report",
            "write_take_extras", "write_take_preview", "TakeExtras", "HULL_TOLERANCE"]
@@ -160,7 +161,7 @@ def _pictures(outdir: Path, take: _Take, fit: FitQuality, k_table) -> dict[str, 
     images = {f: found[int(source[f])] for f in frames if int(source[f]) in found}
     names = (take.name, take.info.get("files", {}).get("track", "track.npz"))
     out = {"keyshapes": plots.contact_sheet(take.keys, take.track, images, outdir / "keyshapes.png",
-                                            take=names),
+                                            take=names, neutral=_neutral_picture(take)),
            "weights": plots.weight_curves(take.weights, take.keys, fit, outdir / "weights.png",
                                             hidden=_hidden(take))}
     k_table = k_table if k_table is not None else _read_k_table(outdir / "error_vs_k.json")
@@ -258,6 +259,14 @@ def _vertex_colours(glb: Path, rig) -> np.ndarray | None:
     if linear.shape != (rig.n_vertices, 3):
         return None
     return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, 1) ** (1 / 2.4) - 0.055)
+
+
+def _neutral_picture(take: _Take):
+    """The neutral's own picture and landmarks when it comes from a file (``--neutral FILE``), else None."""
+    source = take.info.get("neutral_source")
+    if not source or not separate_neutral(take.keys):
+        return None
+    return neutral_picture(source, int(take.keys.neutral_frame))
 
 
 def _hidden(take: _Take) -> dict[str, np.ndarray] | None:

@@ -54,7 +54,8 @@ def _rgb(colour) -> tuple[float, float, float]:
 
 
 def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray], path, *,
-                  take: str | tuple[str, ...] = "", columns: int = 6) -> Path:
+                  take: str | tuple[str, ...] = "", columns: int = 6,
+                  neutral: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
     """The "sculpt list": the neutral frame and every key frame, cropped around the face.
 
     Each tile shows the frame with its landmarks, the key's region highlighted in the
@@ -75,6 +76,10 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
     take : str or tuple of str, keyword-only
         Name(s) of this take as recorded in ``keys.takes`` (e.g. the video's or the track's file name).
     columns : int, keyword-only
+    neutral : (rgb, points), optional, keyword-only
+        The picture ``(height, width, 3) uint8`` and landmarks ``(n_landmarks, 2)`` of a neutral
+        from a file of its own (``keys.neutral_take``, see :func:`keyshape.report._neutral.neutral_picture`):
+        its tile shows them, titled with the file's name.
 
     Returns
     -------
@@ -91,8 +96,11 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
     for ax, (name, region, frame, source) in zip(axes, tiles):
         own = source in ours and 0 <= frame < track.n_frames and track.valid[frame]
         key = None if region is None else keys.names.index(name)
-        _tile(ax, keys, key, track.points[frame] if own else None, images.get(frame) if own else None,
-              palette)
+        if key is None and neutral is not None and not own and np.isfinite(neutral[1]).all():  # --neutral FILE
+            _tile(ax, keys, None, neutral[1], neutral[0], palette)
+        else:
+            _tile(ax, keys, key, track.points[frame] if own else None, images.get(frame) if own else None,
+                  palette)
         title = f"{name} · frame {frame}" if own else f"{name} · {source or 'take'} #{frame}"
         if key is not None and keys.mirror_of[key]:  # drawn as it is: the source frame, flipped
             ax.set_xlim(*ax.get_xlim()[::-1])
