@@ -97,7 +97,7 @@ class Recorder:
         self.n_frames += 1
 
     def _write_patches(self, points, rgb) -> None:
-        """The frame's colour patches around its landmarks, as uint8 (about 4 ms a frame at 720p)."""
+        """The frame's colour patches around its landmarks, as uint8 (1-2 ms a frame, any frame size)."""
         from ..capture.visibility import PATCH_GRID, read_patches
 
         read = points is not None and rgb is not None and np.size(points) == self._sizes["points"] \
