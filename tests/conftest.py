@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import zipfile
 from importlib import resources
@@ -80,3 +81,30 @@ def read_frames(path: Path, n: int | None = None) -> np.ndarray:
     from keyshape.capture.video import iter_frames
 
     return np.stack([rgb for _, rgb in iter_frames(path, end=n)])
+
+
+CHROMIUM = Path(os.environ.get("KEYSHAPE_CHROMIUM", "/usr/bin/chromium"))
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """Debian's Chromium, headless, under Playwright. Fails (never skips) when either is missing.
+
+    One for the whole session, defined here once: a second definition (a module importing this
+    fixture) would start a second Playwright while the first still runs, which it refuses."""
+    if not CHROMIUM.is_file():
+        pytest.fail(f"the browser tests need Chromium at {CHROMIUM}: apt-get install chromium "
+                    "(or set KEYSHAPE_CHROMIUM)", pytrace=False)
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.fail("the browser tests need Playwright for Python: pip install playwright "
+                    "(no browser download: the system Chromium is used)", pytrace=False)
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_FLAGS)
+        yield chromium
+        chromium.close()

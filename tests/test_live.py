@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_viewer import browser  # noqa: F401 - Debian's Chromium under Playwright (a fixture)
 
 from keyshape.containers import KeyShapes
 from keyshape.datasets import make_performance
@@ -487,7 +486,7 @@ def test_live_usage_errors(capsys):
 
 @pytest.mark.browser
 @pytest.mark.slow
-def test_viewer_shows_live_weights_while_a_clip_plays(browser, demo_clip, clip_keys):  # noqa: F811
+def test_viewer_shows_live_weights_while_a_clip_plays(browser, demo_clip, clip_keys):
     proc = _live(demo_clip, "--keys", clip_keys, "--view", "--no-browser", "--duration", "25")
     try:
         url = None

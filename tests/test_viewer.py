@@ -30,10 +30,6 @@ from keyshape.viewer.server import RangeNotSatisfiable, load_take, make_server, 
 
 from conftest import write_video
 
-CHROMIUM = Path(os.environ.get("KEYSHAPE_CHROMIUM", "/usr/bin/chromium"))
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 ARTIFACTS = Path(os.environ.get("KEYSHAPE_TEST_ARTIFACTS", Path(__file__).parent / "artifacts"))
 TOLERANCE = 1e-4  # the CSV holds 6 decimals, the .glb float32
 
@@ -224,23 +220,6 @@ def test_view_command_errors(tmp_path, small_take, capsys):
 
 
 # --------------------------------------------------------------------------- browser
-
-
-@pytest.fixture(scope="session")
-def browser():
-    """Debian's Chromium, headless, under Playwright. Fails (never skips) when either is missing."""
-    if not CHROMIUM.is_file():
-        pytest.fail(f"the browser tests need Chromium at {CHROMIUM}: apt-get install chromium "
-                    "(or set KEYSHAPE_CHROMIUM)", pytrace=False)
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.fail("the browser tests need Playwright for Python: pip install playwright "
-                    "(no browser download: the system Chromium is used)", pytrace=False)
-    with sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_FLAGS)
-        yield chromium
-        chromium.close()
 
 
 def _open(browser, url: str):
