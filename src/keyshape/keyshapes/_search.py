@@ -171,13 +171,14 @@ def find_keyshapes(
     regions = check_regions(regions, aligned.n_landmarks)
     neutral_frame = check_neutral_frame(aligned, neutral_frame)
     upper = check_upper(upper)
-    seen = {region: visible_frames(aligned, candidate_frames(aligned, neutral_frame), landmarks)
+    counts = None if isinstance(n_keys, str) and n_keys == "auto" else _check_counts(n_keys, regions)
+    seen = {region: visible_frames(aligned, candidate_frames(aligned, neutral_frame), landmarks,
+                                   at_least=0 if counts is None else counts[region])
             for region, landmarks in regions.items()}
-    if isinstance(n_keys, str) and n_keys == "auto":
+    if counts is None:
         picked = _auto(aligned, regions, neutral_frame, method, upper, max_error, max_keys)
         rows = {region: pick[0] for region, pick in picked.items()}
     else:
-        counts = _check_counts(n_keys, regions)
         rows = {region: _select_rows(region_data(aligned, seen[region], neutral_frame, landmarks),
                                      counts[region], method, upper, region)
                 for region, landmarks in regions.items()}
@@ -282,18 +283,24 @@ def candidate_frames(aligned: Track, neutral_frame: int) -> np.ndarray:
     return candidates[candidates != neutral_frame]
 
 
-def visible_frames(aligned: Track, candidates: np.ndarray, landmarks) -> np.ndarray:
+def visible_frames(aligned: Track, candidates: np.ndarray, landmarks, *, at_least: int = 0) -> np.ndarray:
     """The ``candidates`` (n_candidates,) int in which the region of ``landmarks`` is not hidden.
 
     A region is hidden in a frame when more than ``containers.HIDDEN_SHARE`` of its landmarks have a
     visibility below 0.5 (:meth:`keyshape.containers.Track.hidden`: a hand over the mouth or an
-    eye): a key is a real frame of the region, never the tracker's guess under a hand. Tracks without
-    visibility keep every candidate; so does a region hidden in every candidate.
+    eye): a key is a real frame of the region, never the tracker's guess under a hand. Tracks
+    without visibility keep every candidate. When fewer than ``at_least`` frames show the region
+    (a short take asked for many keys), the least hidden frames make up the count.
     """
     if aligned.visibility is None:
         return candidates
     hidden = aligned.hidden(landmarks)[candidates]
-    return candidates[~hidden] if (~hidden).any() else candidates
+    if (~hidden).sum() >= max(at_least, 1):
+        return candidates[~hidden]
+    # too few frames show the region (a short take): the least hidden ones make up the count
+    share = (aligned.visibility[np.ix_(candidates, np.asarray(landmarks))] < 0.5).mean(axis=1)
+    keep = np.sort(np.argsort(share, kind="stable")[: max(at_least, int((~hidden).sum()))])
+    return candidates[keep] if len(keep) else candidates
 
 
 def region_data(aligned: Track, candidates: np.ndarray, neutral_frame: int, landmarks) -> np.ndarray:
