@@ -227,9 +227,11 @@ def _no_face_message(path: Path, spool: _Spool, face: int) -> str:
 
 
 def _warn_if_truncated(path: Path, info: VideoInfo, decoded: int, end: int | None) -> None:
-    """Warn when the video ends well before the frame count its container declares."""
+    """Warn when the video ends well before the frame count its container declares (by more than
+    5 frames and 5 %: containers often declare a few frames more than they hold, e.g. QuickTime's
+    edit lists)."""
     wanted = info.n_frames if end is None else min(end, info.n_frames)
-    if info.n_frames and wanted - decoded > max(2, 0.01 * info.n_frames):
+    if info.n_frames and wanted - decoded > max(5, 0.05 * info.n_frames):
         warnings.warn(f"{path}: only {decoded} frames could be decoded but its container declares "
                       f"{info.n_frames}: the file may be truncated, and the track ends at frame {decoded - 1}",
                       InputWarning, stacklevel=3)
