@@ -297,8 +297,8 @@ def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMO
     gaps = gap_report(track.valid, max_bridge=int(round(max_bridge * track.fps)))
     values = np.full((track.n_frames, keys.n_keys), np.nan)
     for start, stop in _segments(gaps):  # held gaps split the take: no data, nothing to bridge
-        values[start:stop] = solve_weights(aligned[start:stop], keys, upper=upper, smoothness=smoothness,
-                                           convex=convex).values
+        solved = solve_weights(aligned[start:stop], keys, upper=upper, smoothness=smoothness, convex=convex).values
+        values[start:stop] = _fill_hidden(solved, track.valid[start:stop])
     if smoothness > 0:
         values = hold_neutral(values, gaps)
     weights = Weights(values, keys.names, track.fps, track.frame_index, track.time)
@@ -319,6 +319,25 @@ def fit_errors(tracks: Track | Sequence[Track], keys: KeyShapes, *,
     errors = reconstruction_error(Track(points, tracks[0].fps, visibility=_seen(tracks)), keys, upper=upper)
     length, unit = face_scale(keys.neutral)
     return {region: 100 * e / length for region, e in errors.items()}, unit
+
+
+def _fill_hidden(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Weights ``(n_frames, n_keys)`` with a value in every frame that has a face.
+
+    A region hidden (a hand over the mouth) at the start or end of a run of faces has nothing to
+    be bridged from on one side: its weights hold the nearest solved frame's (inside a run the
+    smooth solve has bridged them already; this interpolates any that are left).
+    """
+    missing = valid[:, None] & np.isnan(values)
+    if not missing.any():
+        return values
+    values = values.copy()
+    frames = np.arange(len(values))
+    for k in np.flatnonzero(missing.any(axis=0)):
+        known = np.isfinite(values[:, k])
+        values[missing[:, k], k] = np.interp(frames[missing[:, k]], frames[known], values[known, k]) \
+            if known.any() else 0.0
+    return values
 
 
 def _segments(gaps: GapReport) -> list[tuple[int, int]]:

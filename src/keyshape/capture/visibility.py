@@ -170,7 +170,7 @@ def facing(points: np.ndarray) -> np.ndarray:
     vertex /= np.linalg.norm(vertex, axis=-1, keepdims=True) + 1e-12
     toward = -vertex[..., 2]
     if p.shape[1] > 468:
-        iris = np.nanmean(toward, axis=1, keepdims=True).repeat(p.shape[1] - 468, axis=1)
+        iris = toward.mean(axis=1, keepdims=True).repeat(p.shape[1] - 468, axis=1)  # NaN frames stay NaN
         toward = np.concatenate([toward, iris], axis=1)
     return toward
 
