@@ -285,9 +285,12 @@ def test_addon_import_on_the_demo_gives_the_weights_csv(demo_out, tmp_path):
     env = {f"BLENDER_USER_{k}": str(tmp_path / k.lower()) for k in ("SCRIPTS", "CONFIG", "RESOURCES", "EXTENSIONS")}
     seen = _blender(tmp_path, IMPORT_TAKE, demo_out, demo_out / "animation.glb", addon, env=env)
     weights = load_weights_csv(demo_out / "weights.csv")
-    assert seen["names"] == list(weights.names)
+    # the built-in head also carries its gaze targets (eyeLook*, driven from the irises) after the keys
+    assert seen["names"][: weights.n_channels] == list(weights.names)
+    assert all(n.startswith("eyeLook") for n in seen["names"][weights.n_channels:])
     assert len(seen["values"]) == weights.n_frames
-    np.testing.assert_allclose(seen["values"], np.nan_to_num(weights.values), atol=1e-4)
+    values = np.asarray(seen["values"])[:, : weights.n_channels]
+    np.testing.assert_allclose(values, np.nan_to_num(weights.values), atol=1e-4)
     assert seen["fps"] == pytest.approx(weights.fps, rel=1e-4)
 
 
@@ -383,7 +386,8 @@ def test_run_writes_animation_fbx_beside_the_glb(demo_out, demo_clip, tmp_path):
     weights = load_weights_csv(tmp_path / "out" / "weights.csv")
     seen = _blender(tmp_path, READ, tmp_path / "out" / "animation.fbx", weights.n_frames, "none")
     ((mesh, frames),) = seen["values"].items()
-    assert sorted(seen["keyed"][mesh]) == sorted(f'key_blocks["{n}"].value' for n in weights.names)
+    gaze = [f"eyeLook{d}{side}" for side in ("Left", "Right") for d in ("In", "Out", "Up", "Down")]  # the head's eyes
+    assert sorted(seen["keyed"][mesh]) == sorted(f'key_blocks["{n}"].value' for n in [*weights.names, *gaze])
     glb = read_glb_animation(tmp_path / "out" / "animation.glb")
     np.testing.assert_allclose([[f[n] for n in glb.names] for f in frames], glb.weights, atol=1e-4)
 
@@ -427,8 +431,11 @@ def test_addon_runs_keyshape_on_a_video_for_the_selected_character(demo_out, dem
                     shutil.which("keyshape"), addon, env=env)
     weights = load_weights_csv(out / "weights.csv")
     assert weights.n_frames == 40 and seen["folder"] == str(out)
-    assert seen["names"] == list(weights.names)
-    np.testing.assert_allclose(seen["values"], np.nan_to_num(weights.values), atol=1e-4)
+    # the demo's head carries its gaze targets after the keys, turned by the irises
+    assert seen["names"][: weights.n_channels] == list(weights.names)
+    assert all(n.startswith("eyeLook") for n in seen["names"][weights.n_channels:])
+    np.testing.assert_allclose(np.asarray(seen["values"])[:, : weights.n_channels], np.nan_to_num(weights.values),
+                               atol=1e-4)
 
 
 # per frame (from frame 1): the world rotation of each named object

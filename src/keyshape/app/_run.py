@@ -103,7 +103,10 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
     if options.mapping is not None:
         return rig, Mapping.from_file(options.mapping, targets=rig.names), True, None
     rig = with_mirrored_targets(rig, keys)
-    return rig, Mapping.by_name(keys.names, rig.names), True, None
+    from ..targets import GAZE_NAMES
+
+    gaze_only = set(rig.names) - set(keys.names) <= set(GAZE_NAMES)  # e.g. a take's own animation.glb
+    return rig, Mapping.by_name(keys.names, rig.names, allow_extra=gaze_only), True, None
 
 
 def with_mirrored_targets(rig: Rig, keys: KeyShapes) -> Rig:
@@ -189,6 +192,8 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     colours = None
     if options.rig is None:  # the stylised head: its colours, and its eyes turned by the gaze targets
         anim, colours = default_character_extras(anim, solved.gaze)
+    elif options.mapping is None and not options.auto_targets:  # a rig's own ARKit gaze targets: the irises
+        anim = _gaze_targets(anim, solved.gaze, keys)
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes, colours=colours)
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
@@ -202,6 +207,23 @@ def _neutral_file(options, keys: KeyShapes) -> Path | None:
     """The still image or clip the keys' neutral comes from (``--neutral FILE``), if it does."""
     neutral = options.neutral
     return neutral if isinstance(neutral, Path) and keys.neutral_take == neutral.name else None
+
+
+def _gaze_targets(anim, gaze, keys: KeyShapes):
+    """``anim`` with the ARKit gaze targets no key drives (``eyeLookInLeft`` ...) turned by the
+    irises' gaze, at the built-in head's 30° per unit weight (:func:`keyshape.targets.gaze_weights`)."""
+    import dataclasses
+
+    from ..targets import GAZE_NAMES, gaze_weights
+
+    free = [n for n in GAZE_NAMES if n in anim.names and n not in keys.names]
+    if gaze is None or not free:
+        return anim
+    values = np.array(anim.values, dtype=float)
+    driven = gaze_weights(gaze.yaw, gaze.pitch)
+    for name in free:
+        values[:, anim.names.index(name)] = driven[:, GAZE_NAMES.index(name)]
+    return dataclasses.replace(anim, values=values)
 
 
 def default_character_extras(anim, gaze):
