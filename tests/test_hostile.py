@@ -484,7 +484,7 @@ def _corrupt_track(source: Path, target: Path, kind: str, n: int, bad: float) ->
     arrays = _track_arrays(source)
     points = arrays["points"]
     if kind == "value":
-        flat = points.reshape(-1).copy()
+        flat = points.reshape(-1).astype(np.float64)  # a hostile file may hold any float
         valid = np.flatnonzero(np.isfinite(flat))
         flat[valid[n % len(valid)]] = bad if not np.isnan(bad) else np.inf
         arrays["points"] = flat.reshape(points.shape)
