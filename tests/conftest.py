@@ -11,7 +11,61 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import keyshape.cli
+import keyshape.cli._main
+
 SHARED = Path(__file__).resolve().parents[2] / "shared"
+
+
+# --------------------------------------------------------------------------- every failing call keeps its inputs
+
+
+def _digests(words) -> dict[Path, str]:
+    """SHA-256 of every file named in ``words`` and of every file directly inside a folder named."""
+    import hashlib
+
+    out = {}
+    for word in words:
+        path = Path(word)
+        if word.startswith("-") or not (path.is_file() or path.is_dir()):
+            continue
+        for file in [path] if path.is_file() else sorted(path.iterdir()):
+            if file.is_file():
+                out[file] = hashlib.sha256(file.read_bytes()).hexdigest()
+    return out
+
+
+def _guarded(main):
+    """``keyshape.cli.main`` that, whenever a call fails (exit code other than 0), checks that every
+    file its arguments named, or that sat in a folder they named, is byte-identical to before: no
+    failing call of any verb, anywhere in the suite, may change a user's file."""
+
+    def checked(argv=None):
+        words = [str(a) for a in (argv if argv is not None else [])]
+        before = _digests(words)
+        try:
+            code = main(argv)
+        except SystemExit as exc:  # argparse's usage errors
+            code = exc.code if isinstance(exc.code, int) else 1
+            _unchanged(words, before, code)
+            raise
+        _unchanged(words, before, code)
+        return code
+
+    checked.__wrapped__ = main
+    checked.__doc__ = main.__doc__
+    return checked
+
+
+def _unchanged(words, before: dict, code) -> None:
+    if code in (0, None):
+        return
+    after = _digests(words)
+    changed = sorted(str(p) for p, digest in before.items() if after.get(p) != digest)
+    assert not changed, f"`keyshape {' '.join(words)}` failed (exit {code}) and changed {changed}"
+
+
+keyshape.cli.main = keyshape.cli._main.main = _guarded(keyshape.cli._main.main)  # before any test imports it
 
 
 @pytest.fixture(scope="session")
