@@ -8,7 +8,6 @@ The track, keys and weights readers are fuzzed with hypothesis at the end.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -27,23 +26,9 @@ from hypothesis import strategies as st
 
 from keyshape.cli import main
 
-from conftest import read_frames, write_video
+from conftest import _digests, read_frames, write_video
 
 # -- the helper every failing call goes through ---------------------------------------------------
-
-
-def _digests(argv) -> dict[Path, str]:
-    """SHA-256 of every file named in ``argv`` and of every file directly inside a folder named."""
-    out = {}
-    for word in map(str, argv):
-        path = Path(word)
-        if not word.startswith("-") and path.is_file():
-            out[path] = hashlib.sha256(path.read_bytes()).hexdigest()
-        elif not word.startswith("-") and path.is_dir():
-            for file in path.iterdir():
-                if file.is_file():
-                    out[file] = hashlib.sha256(file.read_bytes()).hexdigest()
-    return out
 
 
 def fails(capfd, argv, code: int = 1, says: str | None = None, *, output=None) -> str:
