@@ -156,10 +156,10 @@ def test_the_lower_face_moves_at_the_actors_amplitude(head, keys, rig):
 
 
 def test_the_glb_carries_the_colours_and_passes_the_validator(head, rig, tmp_path):
-    from gltf_validator import validate
-
     from keyshape.containers import Weights
     from keyshape.io.gltf import read_colours, write_glb
+
+    from gltf_validator import validate
 
     weights = Weights(np.zeros((3, rig.n_targets)), rig.names, fps=24.0)
     path = write_glb(tmp_path / "head.glb", rig, weights, colours=head.colours)

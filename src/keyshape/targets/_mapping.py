@@ -288,8 +288,8 @@ def _by_name_message(missing: list[str], extra: list[str]) -> str:
     if missing:
         parts.append(f"keys with no same-named rig target: {missing}")
     if extra:
-        parts.append(f"rig targets with no same-named key: {extra} (--allow-extra on the command line, allow_extra=True "
-                     "in Python, leaves them at 0)")
+        parts.append(f"rig targets with no same-named key: {extra} (--allow-extra on the command line, "
+                     "allow_extra=True in Python, leaves them at 0)")
     return "; ".join(parts) + "; give a mapping to connect differently named keys and targets"
 
 
