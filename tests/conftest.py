@@ -20,14 +20,20 @@ SHARED = Path(__file__).resolve().parents[2] / "shared"
 # --------------------------------------------------------------------------- every failing call keeps its inputs
 
 
-def _digests(words) -> dict[Path, str]:
-    """SHA-256 of every file named in ``words`` and of every file directly inside a folder named."""
+_OUTPUT_FLAGS = ("-o", "--output", "--record", "--save-correspondence")
+
+
+def _digests(words, *, outputs: bool = True) -> dict[Path, str]:
+    """SHA-256 of every file named in ``words`` and of every file directly inside a folder named;
+    with ``outputs=False``, not of the paths given to an output flag (``-o``, ``--record``, ...)."""
     import hashlib
 
     out = {}
-    for word in words:
+    for i, word in enumerate(words):
         path = Path(word)
         if word.startswith("-") or not (path.is_file() or path.is_dir()):
+            continue
+        if not outputs and i and words[i - 1] in _OUTPUT_FLAGS:
             continue
         for file in [path] if path.is_file() else sorted(path.iterdir()):
             if file.is_file():
@@ -37,12 +43,13 @@ def _digests(words) -> dict[Path, str]:
 
 def _guarded(main):
     """``keyshape.cli.main`` that, whenever a call fails (exit code other than 0), checks that every
-    file its arguments named, or that sat in a folder they named, is byte-identical to before: no
-    failing call of any verb, anywhere in the suite, may change a user's file."""
+    input file its arguments named, or that sat in an input folder they named, is byte-identical
+    to before: no failing call of any verb, anywhere in the suite, may change a user's file.
+    (Outputs are another matter: a batch with one failed take still writes the others' results.)"""
 
     def checked(argv=None):
         words = [str(a) for a in (argv if argv is not None else [])]
-        before = _digests(words)
+        before = _digests(words, outputs=False)
         try:
             code = main(argv)
         except SystemExit as exc:  # argparse's usage errors
@@ -60,7 +67,7 @@ def _guarded(main):
 def _unchanged(words, before: dict, code) -> None:
     if code in (0, None):
         return
-    after = _digests(words)
+    after = _digests(words, outputs=False)
     changed = sorted(str(p) for p, digest in before.items() if after.get(p) != digest)
     assert not changed, f"`keyshape {' '.join(words)}` failed (exit {code}) and changed {changed}"
 

@@ -23,20 +23,23 @@ def test_a_failing_call_that_changes_an_input_is_caught(tmp_path):
         _guarded(spoils)(["solve", str(victim), "-o", str(tmp_path / "w.csv")])
 
 
-def test_a_folder_named_counts_and_a_success_may_write(tmp_path):
-    folder = tmp_path / "out"
+def test_an_input_folder_counts_and_outputs_may_be_written(tmp_path):
+    folder = tmp_path / "take"
     folder.mkdir()
     (folder / "keys.json").write_text("{}")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "summary.csv").write_text("old")
 
-    def rewrites(argv):
-        (folder / "keys.json").write_text("[]")
-        return 0
+    def writes_its_output(argv):  # e.g. a batch with one failed take still writes its summary
+        (out / "summary.csv").write_text("new")
+        return 1
 
-    assert _guarded(rewrites)(["run", "clip.mp4", "-o", str(folder)]) == 0  # success: outputs are written
+    assert _guarded(writes_its_output)(["batch", str(folder), "-o", str(out)]) == 1
 
     def spoils(argv):
         (folder / "keys.json").write_text("spoilt")
         raise SystemExit(2)
 
     with pytest.raises(AssertionError, match="exit 2"):
-        _guarded(spoils)(["run", "clip.mp4", "-o", str(folder)])
+        _guarded(spoils)(["report", str(folder)])
