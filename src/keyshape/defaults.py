@@ -8,4 +8,5 @@ MAX_KEYS = 24  # default cap of n_keys="auto" per region: a sculpt list an artis
 DEFAULT_SMOOTHNESS = 0.1  # zero-lag temporal smoothness of the solve (decompose.solve_weights)
 DEFAULT_UPPER = 1.0  # upper bound of every key weight
 DEFAULT_MIRROR = True  # add each key's left-right mirror where it adds reach (keyshapes.add_mirrors)
+MIRROR_SUFFIX = "_mirror"  # a mirrored key is named f"{source}{MIRROR_SUFFIX}" (keyshapes, targets)
 FRONTS = ("auto", "+z", "-z", "+x", "-x", "+y", "-y")  # the axis a character faces (targets.find_correspondence)

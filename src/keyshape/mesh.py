@@ -246,6 +246,7 @@ def mirror_map(vertices: np.ndarray, *, tolerance: float = MIRROR_TOLERANCE) -> 
 
 
 def mirror_field(deltas: np.ndarray, pairs: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """The mirror image ``d'_v = (I − 2nnᵀ) d_p(v)`` of per-vertex offsets ``(..., n_vertices, 3)``."""
+    """The mirror image ``d'_v = (I − 2nnᵀ) d_p(v)`` of per-point offsets ``(..., n_points, n_dims)``
+    (a mesh's vertices, or landmarks), ``p`` each point's partner, ``n`` the plane's unit normal."""
     swapped = np.asarray(deltas, dtype=float)[..., pairs, :]
     return swapped - 2 * (swapped @ normal)[..., None] * normal

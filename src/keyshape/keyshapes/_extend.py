@@ -137,9 +137,9 @@ def _grow_from(basis: np.ndarray, data: np.ndarray, upper, max_error: float, max
             squared = float((data**2).sum())
         elif pool.whole:
             squared = obj(keys)
-        else:  # the pool is a sample of the take: measure every frame
-            squared = _squared_with_basis(basis, data, [pool.rows[k - len(basis)] for k in keys if k >= len(basis)],
-                                          upper)
+        else:  # the pool is a sample of the take: measure every frame (the fixed keys' own rows cost 0)
+            added = [len(basis) + pool.rows[k - len(basis)] for k in keys if k >= len(basis)]
+            squared = _select.squared_error(np.concatenate([basis, data]), [*fixed, *added], upper)
         return float(np.sqrt(squared) * to_percent)
 
     keys = fixed
@@ -158,18 +158,6 @@ def _grow_from(basis: np.ndarray, data: np.ndarray, upper, max_error: float, max
         curve.append(error(keys))
     picks = [pool.rows[k - len(basis)] for k in keys[len(fixed):]]
     return [int(p) for p in picks], curve
-
-
-def _squared_with_basis(basis, data, rows, upper) -> float:
-    from ..decompose import solve_nnls
-
-    full = np.concatenate([basis, data[np.asarray(rows, dtype=int)]])
-    total = 0.0
-    for start in range(0, len(data), 4096):
-        block = data[start:start + 4096]
-        w = solve_nnls(full.T, block, upper=upper)
-        total += float(((block - w @ full) ** 2).sum())
-    return total
 
 
 def _next_name(region: str, names: set[str], used: dict[str, int]) -> str:

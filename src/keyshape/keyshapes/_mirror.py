@@ -31,8 +31,9 @@ import numpy as np
 
 from ..containers import KeyShapes
 from ..decompose import solve_nnls
-from ..defaults import MAX_ERROR
+from ..defaults import MAX_ERROR, MIRROR_SUFFIX
 from ..exceptions import InputError
+from ..mesh import mirror_field
 from ..metrics import face_scale
 from ..schemes import mirror_pairs
 
@@ -40,7 +41,6 @@ __all__ = ["MIN_REACH", "MIRROR_SUFFIX", "add_mirrors", "find_mirror_pairs", "mi
            "mirror_gains"]
 
 MIN_REACH = 0.3  # a mirror must leave this fraction of itself unexplained by the keys already there
-MIRROR_SUFFIX = "_mirror"
 
 
 def symmetry_plane(points: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, float]:
@@ -114,10 +114,9 @@ def find_mirror_pairs(neutral: np.ndarray) -> np.ndarray | None:
 
 
 def mirror_deltas(deltas: np.ndarray, pairs: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """The mirror images ``δ'_i = (I − 2nnᵀ) δ_p(i)`` of ``deltas (..., n_landmarks, n_dims)``."""
-    deltas = np.asarray(deltas, dtype=float)
-    swapped = deltas[..., pairs, :]
-    return swapped - 2 * (swapped @ normal)[..., None] * normal
+    """The mirror images ``δ'_i = (I − 2nnᵀ) δ_p(i)`` of ``deltas (..., n_landmarks, n_dims)``
+    (:func:`keyshape.mesh.mirror_field`, on landmarks)."""
+    return mirror_field(deltas, pairs, normal)
 
 
 def _pairs_for(keys: KeyShapes, pairs) -> np.ndarray | None:

@@ -14,16 +14,17 @@ from collections.abc import Mapping as MappingABC
 import numpy as np
 
 from ..containers import Rig
+from ..defaults import MIRROR_SUFFIX
 from ..mesh import mirror_field, mirror_map
 
 __all__ = ["complete_mirrors", "mirror_sources"]
 
 
-def mirror_sources(names, suffix: str = "_mirror") -> dict[str, str]:
+def mirror_sources(names, suffix: str = MIRROR_SUFFIX) -> dict[str, str]:
     """``{mirrored name: source name}`` for names ending in ``suffix`` whose source is among them too.
 
     The command line's ``retarget`` knows the keys only by their weight columns; a mirrored key is
-    named ``f"{source}_mirror"`` (:data:`keyshape.keyshapes.MIRROR_SUFFIX`).
+    named ``f"{source}_mirror"`` (:data:`keyshape.defaults.MIRROR_SUFFIX`).
 
     Examples
     --------
