@@ -241,12 +241,11 @@ def test_batch_warns_about_a_take_outside_the_shared_keys_reach(takes, tmp_path)
     from keyshape.app._batch import _warn_out_of_reach
     from keyshape.app._run import RunOptions
     from keyshape.exceptions import InputWarning
-    from keyshape.io import save_track
 
     _, _, first, second = takes
-    keys_path = save_keys(discover_keys(first, n_keys=4, neutral=0, mirror=False), tmp_path / "keys.json")
-    paths = {name: save_track(t, tmp_path / f"{name}.npz") for name, t in (("a", first), ("b", second))}
+    keys = discover_keys(first, n_keys=4, neutral=0, mirror=False)
+    keys_path = save_keys(keys, tmp_path / "keys.json")
     options = RunOptions(max_error=0.5)
     with pytest.warns(InputWarning, match=r"^b\.mp4: outside the shared key set's reach .*--extend") as caught:
-        _warn_out_of_reach(keys_path, {tmp_path / "a.mp4": paths["a"], tmp_path / "b.mp4": paths["b"]}, options)
+        _warn_out_of_reach(keys, keys_path, {tmp_path / "a.mp4": first, tmp_path / "b.mp4": second}, options)
     assert len(caught) == 1  # the take the keys came from is within reach

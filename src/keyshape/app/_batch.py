@@ -334,7 +334,7 @@ def _shared_key_set(videos: list[Path], outdir: Path, options: RunOptions, runne
     """Track the takes (reusing tracks kept from an interrupted run), then find or reuse
     ``outdir/keys.json``. Returns the options with that key set, the track of each take and
     the rows of the takes that failed."""
-    from ..io.keys_json import save_keys
+    from ..io.keys_json import load_keys, save_keys
     from ..io.track import load_track
     from ._pipeline import discover_keys
 
@@ -347,42 +347,39 @@ def _shared_key_set(videos: list[Path], outdir: Path, options: RunOptions, runne
         if not isinstance(row, BatchRow) or row.status == "failed":
             failed[job[0]] = row if isinstance(row, BatchRow) else _crashed(job[0], row)
     keys_path = outdir / "keys.json"
+    loaded = {v: load_track(tracks[v]) for v in videos if v not in failed}  # read once, for both below
     if not keys_path.is_file():  # a rerun keeps the key set its finished takes were solved with
-        usable = [v for v in videos if v not in failed]
-        if not usable:
+        if not loaded:
             return replace(options, keys=keys_path), tracks, failed
-        keys = discover_keys([load_track(tracks[v]) for v in usable], regions=options.regions,
+        keys = discover_keys(list(loaded.values()), regions=options.regions,
                              n_keys=options.n_keys, method=options.method, neutral=options.neutral,
-                             take=[v.name for v in usable], upper=options.upper, max_error=options.max_error,
+                             take=[v.name for v in loaded], upper=options.upper, max_error=options.max_error,
                              mirror=options.mirror)
         save_keys(keys, keys_path)
-    _warn_out_of_reach(keys_path, {v: tracks[v] for v in videos if v not in failed}, options)
+    else:
+        keys = load_keys(keys_path)
+    _warn_out_of_reach(keys, keys_path, loaded, options)
     return replace(options, keys=keys_path), tracks, failed
 
 
-def _warn_out_of_reach(keys_path: Path, tracks: dict[Path, Path], options: RunOptions) -> None:
-    """Warn about every take the shared key set does not reach within the error target (a take
-    added after the key set was made, or one unlike the others)."""
+def _warn_out_of_reach(keys, keys_path: Path, tracks: dict, options: RunOptions) -> None:
+    """Warn about every take (``tracks``: video -> Track) the shared key set does not reach within
+    the error target (a take added after the key set was made, or one unlike the others)."""
     import shlex
     import warnings
 
     from ..exceptions import InputWarning
-    from ..io.keys_json import load_keys
-    from ..io.track import load_track
     from ._pipeline import fit_errors
 
-    if not tracks:
-        return
-    keys = load_keys(keys_path)
-    for video, path in tracks.items():
-        errors, unit = fit_errors(load_track(path), keys, upper=options.upper)
+    for video, track in tracks.items():
+        errors, unit = fit_errors(track, keys, upper=options.upper)
         beyond = {r: e for r, e in errors.items() if e > options.max_error}
         if beyond:
             worst = ", ".join(f"{r} {e:.2f}" for r, e in beyond.items())
-            track = shlex.quote(str(keys_path.parent / video.stem / "track.npz"))
+            saved = shlex.quote(str(keys_path.parent / video.stem / "track.npz"))
             warnings.warn(f"{video.name}: outside the shared key set's reach (RMS error {worst} {unit}, target "
-                          f"{options.max_error:g}); `keyshape coverage {track} --keys {shlex.quote(str(keys_path))}"
-                          f" -o DIR` shows where, `keyshape keys {track} --extend ... -o KEYS.json` adds keys for it",
+                          f"{options.max_error:g}); `keyshape coverage {saved} --keys {shlex.quote(str(keys_path))}"
+                          f" -o DIR` shows where, `keyshape keys {saved} --extend ... -o KEYS.json` adds keys for it",
                           InputWarning, stacklevel=2)
 
 

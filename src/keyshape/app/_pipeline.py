@@ -147,12 +147,17 @@ def _aligned_together(tracks: Sequence[Track], reference: np.ndarray, stable: np
     return out
 
 
+def _take_frames(frames: np.ndarray, lengths: list[int], takes: list[str]) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Frame indices into the takes end to end -> (frames within their take, take names)."""
+    starts = np.cumsum([0, *lengths[:-1]])
+    which = np.searchsorted(starts, frames, side="right") - 1
+    return np.asarray(frames) - starts[which], tuple(takes[i] for i in which)
+
+
 def _split_takes(keys: KeyShapes, lengths: list[int], takes: list[str]) -> KeyShapes:
     """Turn frame indices into the concatenated takes back into (take, frame) pairs."""
-    starts = np.cumsum([0, *lengths[:-1]])
-    which = np.searchsorted(starts, keys.frames, side="right") - 1
-    return KeyShapes(keys.neutral, keys.deltas, keys.names, keys.frames - starts[which],
-                     keys.key_regions, keys.regions, tuple(takes[i] for i in which),
+    frames, names = _take_frames(keys.frames, lengths, takes)
+    return KeyShapes(keys.neutral, keys.deltas, keys.names, frames, keys.key_regions, keys.regions, names,
                      keys.neutral_frame, takes[0], keys.method, keys.stable, keys.mirror_of)
 
 
@@ -178,17 +183,14 @@ def extend_keys(keys: KeyShapes, track: Track | Sequence[Track], *, take: str | 
     extended, _ = extend_keyshapes(keys, together, max_error=max_error, max_keys=max_keys, upper=upper)
     if mirror:
         extended = add_mirrors(extended, min_reach=min_reach, max_error=max_error, upper=upper)
-    # new keys' frames index the takes end to end: back to (take, frame)
-    lengths = [t.n_frames for t in tracks]
-    starts = np.cumsum([0, *lengths[:-1]])
+    # new keys' frames (and their mirrors') index the takes end to end: back to (take, frame)
     old = set(keys.names)
+    new = np.array([n not in old and (m or n) not in old for n, m in zip(extended.names, extended.mirror_of)])
     frames, sources = extended.frames.copy(), list(extended.takes)
-    for k, name in enumerate(extended.names):
-        source = extended.mirror_of[k]
-        if name in old or (source and source in old):
-            continue
-        which = int(np.searchsorted(starts, extended.frames[k], side="right") - 1)
-        frames[k], sources[k] = extended.frames[k] - starts[which], takes[which]
+    if new.any():
+        frames[new], named = _take_frames(extended.frames[new], [t.n_frames for t in tracks], takes)
+        for k, name in zip(np.flatnonzero(new), named):
+            sources[k] = name
     return KeyShapes(extended.neutral, extended.deltas, extended.names, frames, extended.key_regions,
                      extended.regions, tuple(sources), extended.neutral_frame, extended.neutral_take,
                      extended.method, extended.stable, extended.mirror_of)

@@ -81,10 +81,11 @@ class TakeSummary:
 
 
 def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: Rig | None = None
-                     ) -> tuple[Rig, object, bool, object]:
-    """The character, the key -> target mapping, whether the rig file is kept whole, and the
-    :class:`~keyshape.targets._propose.AutoTargets` proposal (None without ``auto_targets``);
-    ``loaded``: ``options.rig`` read already (by :func:`_read_inputs`)."""
+                     ) -> tuple[Rig, object, bool, object, bool]:
+    """The character, the key -> target mapping, whether the rig file is kept whole, the
+    :class:`~keyshape.targets._propose.AutoTargets` proposal (None without ``auto_targets``), and
+    whether targets the file lacks were made (mirrored keys'); ``loaded``: ``options.rig`` read
+    already (by :func:`_read_inputs`)."""
     from ..io.rig import load_rig
     from ..targets import Mapping
 
@@ -92,21 +93,21 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
         from ..targets import default_character, with_gaze_targets
 
         rig = with_gaze_targets(default_character(keys))  # a stylised head with proposed targets (issue 7)
-        return rig, Mapping.by_name(keys.names, rig.names, allow_extra=True), False, None
+        return rig, Mapping.by_name(keys.names, rig.names, allow_extra=True), False, None, False
     if options.auto_targets:
         from ..targets import auto_targets
 
         auto = auto_targets(keys, options.rig, correspondence=options.correspondence, front=options.front,
                             normalize=options.normalize, scores=scores)
-        return auto.rig, auto.mapping, auto.route == "mapping", auto
-    rig = loaded if loaded is not None else load_rig(options.rig)
+        return auto.rig, auto.mapping, auto.route == "mapping", auto, False
+    read = loaded if loaded is not None else load_rig(options.rig)
     if options.mapping is not None:
-        return rig, Mapping.from_file(options.mapping, targets=rig.names), True, None
-    rig = with_mirrored_targets(rig, keys)
+        return read, Mapping.from_file(options.mapping, targets=read.names), True, None, False
+    rig = with_mirrored_targets(read, keys)  # the same object when nothing was made
     from ..targets import GAZE_NAMES
 
     gaze_only = set(rig.names) - set(keys.names) <= set(GAZE_NAMES)  # e.g. a take's own animation.glb
-    return rig, Mapping.by_name(keys.names, rig.names, allow_extra=gaze_only), True, None
+    return rig, Mapping.by_name(keys.names, rig.names, allow_extra=gaze_only), True, None, rig is not read
 
 
 def with_mirrored_targets(rig: Rig, keys: KeyShapes) -> Rig:
@@ -169,7 +170,7 @@ def _error_pct(solved, keys: KeyShapes) -> float:
 
 
 def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, options,
-                   keep_file: bool = True) -> None:
+                   keep_file: bool = True, remade: bool = False) -> None:
     from ..io import export
     from ..io.keys_json import save_keys
     from ..io.take import save_take_info
@@ -183,8 +184,7 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     anim = retarget(solved.weights, mapping)
     source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
-    if source is not None and options.mapping is None and not options.auto_targets \
-            and _mirrors_made(rig, keys, source):  # mirrored keys' targets made: the file gets them
+    if source is not None and remade:  # mirrored keys' targets made: the file gets them
         from ..io.gltf import write_gltf_targets
 
         source = write_gltf_targets(source, stage / ".character.glb", rig)
@@ -193,7 +193,7 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     if options.rig is None:  # the stylised head: its colours, and its eyes turned by the gaze targets
         anim, colours = default_character_extras(anim, solved.gaze)
     elif options.mapping is None and not options.auto_targets:  # a rig's own ARKit gaze targets: the irises
-        anim = _gaze_targets(anim, solved.gaze, keys)
+        anim = _gaze_targets(anim, solved.gaze, taken=keys.names)
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes, colours=colours)
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
@@ -209,14 +209,15 @@ def _neutral_file(options, keys: KeyShapes) -> Path | None:
     return neutral if isinstance(neutral, Path) and keys.neutral_take == neutral.name else None
 
 
-def _gaze_targets(anim, gaze, keys: KeyShapes):
-    """``anim`` with the ARKit gaze targets no key drives (``eyeLookInLeft`` ...) turned by the
-    irises' gaze, at the built-in head's 30° per unit weight (:func:`keyshape.targets.gaze_weights`)."""
+def _gaze_targets(anim, gaze, taken=()):
+    """``anim`` with its ARKit gaze targets (``eyeLookInLeft`` ...) but those named in ``taken``
+    (driven by keys) turned by the irises' gaze, at the built-in head's 30° per unit weight
+    (:func:`keyshape.targets.gaze_weights`); frame numbers and times kept."""
     import dataclasses
 
     from ..targets import GAZE_NAMES, gaze_weights
 
-    free = [n for n in GAZE_NAMES if n in anim.names and n not in keys.names]
+    free = [n for n in GAZE_NAMES if n in anim.names and n not in taken]
     if gaze is None or not free:
         return anim
     values = np.array(anim.values, dtype=float)
@@ -228,29 +229,9 @@ def _gaze_targets(anim, gaze, keys: KeyShapes):
 
 def default_character_extras(anim, gaze):
     """The built-in head's animation with its gaze targets driven by ``gaze`` (if any), and its colours."""
-    import dataclasses
+    from ..targets import stylised_head
 
-    from ..targets import GAZE_NAMES, gaze_weights, stylised_head
-
-    values = np.array(anim.values, dtype=float)
-    if gaze is not None:
-        columns = [anim.names.index(n) for n in GAZE_NAMES]
-        values[:, columns] = gaze_weights(gaze.yaw, gaze.pitch)
-    return dataclasses.replace(anim, values=values), stylised_head().colours  # frame_index, time kept
-
-
-def _mirrors_made(rig: Rig, keys: KeyShapes, source: Path) -> bool:
-    """Whether ``rig`` holds mirrored keys' targets that the file ``source`` lacks or holds neutral."""
-    if not keys.mirrored.any():
-        return False
-    from ..io.rig import load_rig
-
-    original = load_rig(source)
-    for name in (n for n, m in zip(keys.names, keys.mirror_of) if m and n in rig.names):
-        if name not in original.names or not np.array_equal(original.deltas[original.names.index(name)],
-                                                            rig.deltas[rig.names.index(name)]):
-            return True
-    return False
+    return _gaze_targets(anim, gaze), stylised_head().colours
 
 
 def _check_formats(formats) -> None:
@@ -293,9 +274,9 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
                         convex=options.convex)
     scores = key_scores(keys, track, solved.weights,
                         same_take=options.keys is None and not isinstance(options.neutral, Path))  # reused keys too
-    rig, mapping, keep_file, auto = _rig_and_mapping(options, keys, scores, loaded_rig)
+    rig, mapping, keep_file, auto, remade = _rig_and_mapping(options, keys, scores, loaded_rig)
     with staged_folder(outdir, owned=_run_owned) as stage:  # stale outputs of an earlier run go
-        _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file)
+        _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file, remade)
         if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
             auto.correspondence.save(stage / "correspondence.json")
             if auto.route == "mapping":
