@@ -38,20 +38,19 @@ from bench_closed_loop import ARCHIVE, SHARED, extract_ict, landmark_vertices
 
 
 def halves(track):
-    from keyshape.containers import Track
-
+    """The take's two halves (scores, visibility and all), and where the second starts."""
     cut = track.n_frames // 2
-    first, second = (Track(track.points[s], track.fps,
-                           blendshapes=None if track.blendshapes is None else track.blendshapes[s],
-                           blendshape_names=track.blendshape_names)
-                     for s in (slice(0, cut), slice(cut, None)))
-    return first, second, cut
+    return track[:cut], track[cut:], cut
 
 
 def key_sets(first, second, *, reaches=(None,)):
     """name -> KeyShapes: without mirrors, with mirrors at each ``min_reach``, extended."""
+    from dataclasses import replace
+
+    from keyshape.alignment import choose_neutral
     from keyshape.app import discover_keys, extend_keys
     from keyshape.keyshapes import MIN_REACH
+    from keyshape.schemes import stable_points
 
     plain = discover_keys(first, mirror=False)
     out = {"no mirrors": plain}
@@ -61,6 +60,11 @@ def key_sets(first, second, *, reaches=(None,)):
         out[label] = discover_keys(first, mirror=True, min_reach=reach)
     default = next(v for k, v in out.items() if "[default]" in k)
     out["mirrors + --extend"] = extend_keys(default, second, take="second")
+    # the neutral by the median-shape rule instead of the default least-activated frame
+    median = choose_neutral(first, stable=stable_points(first.n_landmarks))
+    out[f"mirrors, median-shape neutral (frame {median})"] = discover_keys(first, mirror=True, neutral=int(median))
+    out["mirrors, no visibility (hidden frames may be keys)"] = discover_keys(replace(first, visibility=None),
+                                                                              mirror=True)
     return out
 
 
