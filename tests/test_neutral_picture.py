@@ -84,6 +84,7 @@ def test_without_the_file_the_neutral_tile_is_its_shape_labelled_with_its_source
         == plain.shape
 
 
+@pytest.mark.skipif(not ROBOT.is_file(), reason=f"{ROBOT} not present (shared data)")
 def test_the_kit_readme_names_the_neutral_file(take, tmp_path, monkeypatch):
     keys, track, video = take
     calls = []

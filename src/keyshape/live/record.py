@@ -121,6 +121,17 @@ class Recorder:
         sample = frames[np.linspace(0, len(frames) - 1, min(N_SAMPLE, len(frames))).astype(int)]
         return visibility_from_patches(_Unit(patches)[sample], _Unit(patches), points, unread=~read)
 
+    def _complete_frames(self) -> int:
+        """The frames every spool file holds whole (SIGTERM may land between one file's write and
+        the next's)."""
+        from ..capture.visibility import PATCH_GRID
+
+        counts = [(self._spool / f"{name}.f32").stat().st_size // (4 * size) for name, size in self._sizes.items()]
+        patch = self.keys.n_landmarks * PATCH_GRID ** 2 * 3
+        counts += [(self._spool / "patches.u8").stat().st_size // patch, len(self._read)]
+        self._read = self._read[: min(counts)]
+        return min(self.n_frames, *counts)
+
     def _arrays(self) -> dict[str, np.ndarray]:
         return {name: np.fromfile(self._spool / f"{name}.f32", dtype=np.float32).reshape(self.n_frames, size)
                 for name, size in self._sizes.items()}
@@ -129,6 +140,7 @@ class Recorder:
         """Write the take files (see the module docstring) and remove the spool."""
         self._stack.close()
         try:
+            self.n_frames = self._complete_frames()  # a signal between two files' writes: the whole frames
             if self.n_frames:
                 self.files = self._finish(self._arrays())
         finally:
