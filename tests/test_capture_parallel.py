@@ -83,3 +83,12 @@ def test_parallel_track_matches_the_sequential_one(demo_clip, real_track):
     error = np.linalg.norm(parallel.points[..., :2] - real_track.points[..., :2], axis=2).mean(axis=1) / iod
     assert np.nanmax(error) < 0.01 and np.nanmean(error) < 0.001  # tracking noise: about 1 % of the IOD
     assert np.nanmax(np.abs(parallel.blendshapes - real_track.blendshapes)) < 0.1
+    # the visibility: read from the patches each worker spooled, as two more decodes would give it
+    from keyshape.capture.visibility import estimate_visibility
+    from keyshape.schemes import mediapipe_scheme
+
+    np.testing.assert_array_equal(parallel.visibility, estimate_visibility(demo_clip, parallel.points))
+    for part in ("lips", "right_eye", "left_eye"):  # and the sequential one's, within the tracking noise
+        region = np.array(mediapipe_scheme()["contours"][part])
+        seen, seen_1 = (t.visibility[:, region].mean(axis=1) for t in (parallel, real_track))
+        assert np.abs(seen - seen_1).max() < 0.2 and ((seen < 0.5) != (seen_1 < 0.5)).mean() < 0.03, part

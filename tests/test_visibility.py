@@ -84,3 +84,38 @@ def test_no_default_key_in_a_covered_frame(real_track):
     eye, _ = _labelled("right_eye", real_track.n_frames)
     for region, frame in zip(keys.key_regions, keys.frames):
         assert not (mouth if region == "lower" else eye)[frame], (region, int(frame))
+
+
+@pytest.mark.slow
+def test_patches_read_while_tracking_give_the_two_pass_visibility(demo_clip, real_track):
+    """One decode: the patches read as the frames are tracked score exactly as decoding the video
+    twice more after tracking (:func:`estimate_visibility`) does."""
+    from keyshape.capture.visibility import estimate_visibility
+
+    np.testing.assert_array_equal(real_track.visibility, estimate_visibility(demo_clip, real_track.points))
+
+
+def test_spooled_patches_read_back_by_slices_and_rows(tmp_path):
+    from keyshape.capture._track import PATCH_SHAPE, _Frame, _Patches, _Spool
+
+    rng = np.random.default_rng(0)
+    spools, patches = [], []
+    for k in range(2):
+        (tmp_path / str(k)).mkdir()
+        with _Spool(tmp_path / str(k)) as spool:
+            for _ in range(5):
+                frame = rng.random(PATCH_SHAPE, dtype=np.float32)
+                spool.append(_Frame(np.zeros((478, 3), np.float32), np.zeros(52, np.float32),
+                                    np.eye(4, dtype=np.float32), patches=frame))
+                patches.append(frame)
+            spool.append(_Frame(*(np.full(s, np.nan, np.float32) for s in ((478, 3), 52, (4, 4)))))
+            patches.append(np.full(PATCH_SHAPE, np.nan, np.float32))
+        spools.append(spool)
+    np.testing.assert_array_equal(spools[0].patches()[1:4], np.stack(patches[1:4]))
+    joined = _Patches([(tmp_path / "0", 2, 4), (tmp_path / "1", 1, 5)])  # rows 2.. of one, 1.. of the other
+    expected = np.stack(patches[2:6] + patches[7:12])
+    assert joined.shape == (9, *PATCH_SHAPE)
+    np.testing.assert_array_equal(joined[:], expected)
+    np.testing.assert_array_equal(joined[np.array([0, 3, 4, 8])], expected[[0, 3, 4, 8]])
+    np.testing.assert_array_equal(joined[3:7], expected[3:7])
+    assert joined[5:5].shape == (0, *PATCH_SHAPE)

@@ -241,8 +241,10 @@ def _stitch(track_segment, spool_type, path, info, segments, spools, pts, kwargs
 
 
 def _join(spool_type, kept: list, folder: Path):
-    """One spool in ``folder`` holding the kept rows of every segment, in order."""
-    with spool_type(folder) as joined:
+    """One spool in ``folder`` holding the kept rows of every segment, in order; the frames'
+    patches (143 kB each) stay in the segments' files, which the joined spool reads."""
+    with spool_type(folder, patches=False) as joined:
+        joined.pieces = [(spool.folder, row, spool.n_frames - row) for spool, row in kept]
         for spool, row in kept:
             arrays = spool.arrays()
             for lo in range(row, spool.n_frames, _CHUNK):

@@ -22,12 +22,15 @@ from ..containers import Track
 from ..exceptions import InputError, InputWarning, NoFaceError
 from .mediapipe import Detection, MediaPipeTracker, TrackerOptions, default_model_path
 from .video import VideoInfo, iter_frames, prefetch, probe
+from .visibility import PATCH_GRID, read_patches
 
 __all__ = ["track_video", "track_to_file", "TrackerOptions", "MediaPipeTracker", "default_model_path",
            "probe", "iter_frames", "VideoInfo", "FaceFollower"]
 
 N_LANDMARKS = 478
 N_SCORES = 52
+PATCH_SHAPE = (N_LANDMARKS, PATCH_GRID ** 2, 3)  # a frame's colour patches (:mod:`.visibility`)
+_NAN_PATCHES = np.full(PATCH_SHAPE, np.nan, np.float32)
 
 
 class FaceFollower:
@@ -78,6 +81,7 @@ class _Frame:
     index: int = 0  # the source frame number
     ms: int = 0  # its presentation time in milliseconds
     n_seen: int = 0  # faces the tracker saw in it (anyone's)
+    patches: np.ndarray | None = None  # PATCH_SHAPE float32 around the points (None: no face), for the visibility
 
 
 def _nan_frame(index: int = 0, ms: int = 0, n_seen: int = 0) -> _Frame:
@@ -113,9 +117,10 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
                     smooth(np.full(1, np.nan))  # a gap restarts the filter
                 yield _nan_frame(index, ms, len(faces))
             else:
-                points = smooth(chosen.points) if smooth is not None else chosen.points
-                yield _Frame(points.astype(np.float32), chosen.scores.astype(np.float32),
-                             chosen.matrix.astype(np.float32), index, ms, len(faces))
+                points = (smooth(chosen.points) if smooth is not None else chosen.points).astype(np.float32)
+                # the patches are read here, from the frame being tracked: no second decode for them
+                yield _Frame(points, chosen.scores.astype(np.float32), chosen.matrix.astype(np.float32),
+                             index, ms, len(faces), read_patches(rgb, points))
 
 
 def _check_range(start: int, end: int | None) -> None:
@@ -130,11 +135,18 @@ def _blendshape_names() -> tuple[str, ...]:
 
 
 class _Spool:
-    """Append-only float32 files on disk, read back as memory maps (flat memory)."""
+    """Append-only float32 files on disk, read back as memory maps (flat memory).
 
-    def __init__(self, folder: Path):
+    The frames' colour patches (``patches=True``) go to a file of their own, read back by
+    :meth:`patches`; a spool joined from others (:mod:`._parallel`) reads theirs, its ``pieces``.
+    """
+
+    def __init__(self, folder: Path, *, patches: bool = True):
         self.folder = folder
         self.files = {}
+        self.keeps_patches = patches
+        self.pieces: list[tuple[Path, int, int]] = []  # (folder, first row, n_rows) whose patches are ours
+        self._patches = None
         self._open = ExitStack()
         self.n_frames = 0
         self.n_faces = 0
@@ -145,6 +157,9 @@ class _Spool:
     def append(self, frame: _Frame) -> None:
         for name, fh in self.files.items():
             fh.write(np.ascontiguousarray(getattr(frame, name)).tobytes())
+        if self._patches is not None:
+            patches = _NAN_PATCHES if frame.patches is None else frame.patches
+            self._patches.write(np.ascontiguousarray(patches, dtype=np.float32).tobytes())
         self.n_frames += 1
         self.n_faces += bool(np.isfinite(frame.points[0, 0]))
         self.most_seen = max(self.most_seen, frame.n_seen)
@@ -160,6 +175,8 @@ class _Spool:
         with ExitStack() as stack:  # a failed open closes the ones before it
             self.files = {name: stack.enter_context(open(self.folder / f"{name}.f32", "wb"))
                           for name in ("points", "scores", "matrix")}
+            if self.keeps_patches:
+                self._patches = stack.enter_context(open(self.folder / "patches.f32", "wb"))
             self._open = stack.pop_all()
         return self
 
@@ -171,6 +188,46 @@ class _Spool:
         shapes = {"points": (N_LANDMARKS, 3), "scores": (N_SCORES,), "matrix": (4, 4)}
         return {name: np.memmap(self.folder / f"{name}.f32", dtype=np.float32, mode="r",
                                 shape=(self.n_frames, *shape)) for name, shape in shapes.items()}
+
+    def patches(self) -> _Patches:
+        """The frames' patches, ``(n_frames, *PATCH_SHAPE)``, read from disk a slice at a time."""
+        return _Patches(self.pieces or [(self.folder, 0, self.n_frames)])
+
+
+class _Patches:
+    """Rows of patch files read as one ``(n_rows, *PATCH_SHAPE)`` float32 array, a slice or an
+    index array at a time (``patches[i:j]``, ``patches[rows]``). Read, not memory-mapped: a long
+    take's patches (143 kB a frame) would otherwise all end up in the resident set.
+
+    pieces : (folder, first row, n_rows) of each file, in order
+    """
+
+    def __init__(self, pieces: list[tuple[Path, int, int]]):
+        self.pieces = [piece for piece in pieces if piece[2] > 0]
+        self.starts = np.cumsum([0] + [n for _, _, n in self.pieces])
+        self.shape = (int(self.starts[-1]), *PATCH_SHAPE)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, rows) -> np.ndarray:
+        rows = np.arange(self.shape[0])[rows]
+        out = np.empty((len(rows), *PATCH_SHAPE), np.float32)
+        if not len(rows):
+            return out
+        piece = np.searchsorted(self.starts, rows, side="right") - 1
+        # runs of consecutive rows in one file, each read at once
+        cuts = np.flatnonzero((np.diff(rows) != 1) | (np.diff(piece) != 0)) + 1
+        row_bytes = out[0].nbytes
+        with ExitStack() as stack:
+            files = {}
+            for lo, hi in zip([0, *cuts], [*cuts, len(rows)]):
+                k = int(piece[lo])
+                if k not in files:
+                    files[k] = stack.enter_context(open(self.pieces[k][0] / "patches.f32", "rb"))
+                files[k].seek((self.pieces[k][1] + int(rows[lo] - self.starts[k])) * row_bytes)
+                files[k].readinto(memoryview(out[lo:hi]).cast("B"))
+        return out
 
 
 def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
@@ -237,11 +294,14 @@ def _warn_if_truncated(path: Path, info: VideoInfo, decoded: int, end: int | Non
                       InputWarning, stacklevel=3)
 
 
-def _visibility(path, points: np.ndarray, start: int, end: int | None, fps: float | None) -> np.ndarray:
-    """(n_frames, n_landmarks) visibility of the tracked landmarks (:mod:`.visibility`)."""
-    from .visibility import estimate_visibility
+def _visibility(spool: _Spool, points: np.ndarray) -> np.ndarray:
+    """(n_frames, n_landmarks) visibility of the tracked landmarks (:mod:`.visibility`), from the
+    patches read while tracking: the same numbers as :func:`~.visibility.estimate_visibility`'s
+    two more decodes of the video."""
+    from .visibility import sample_frames, visibility_from_patches
 
-    return estimate_visibility(path, points, start=start, end=end, fps=fps)
+    patches = spool.patches()
+    return visibility_from_patches(patches[sample_frames(points)], patches, points)
 
 
 def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,
@@ -280,7 +340,7 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
         clock = spool.clock()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
                       _blendshape_names(), arrays["matrix"], clock["frame_index"], clock["time"],
-                      _visibility(path, arrays["points"], start, end, fps))
+                      _visibility(spool, arrays["points"]))
         del arrays
     return track
 
@@ -304,7 +364,7 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],
                            blendshape_names=_blendshape_names(), head_matrix=arrays["matrix"],
-                           visibility=_visibility(path, arrays["points"], start, end, fps), **spool.clock())
+                           visibility=_visibility(spool, arrays["points"]), **spool.clock())
         del arrays
     return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "fps": info.fps,
             "image_size": (info.width, info.height)}

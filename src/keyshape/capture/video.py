@@ -133,6 +133,7 @@ def _decode_video(path: Path, fps: float | None, start: int = 0,
         stream.thread_type = "AUTO"
         rate = float(fps or stream.average_rate or stream.guessed_rate or 30)
         sought = _seek(container, stream, pts, start)
+        rgb24 = av.video.reformatter.VideoReformatter()  # one for all frames: to_ndarray sets one up per frame
         try:
             for decoded, frame in enumerate(container.decode(stream)):
                 index = decoded
@@ -145,7 +146,7 @@ def _decode_video(path: Path, fps: float | None, start: int = 0,
                 else:
                     ms = int(round(index * 1000 / rate))
                 rotation = int(round(getattr(frame, "rotation", 0) or 0)) % 360
-                yield index, ms, _rotate(frame.to_ndarray(format="rgb24"), rotation)
+                yield index, ms, _rotate(rgb24.reformat(frame, format="rgb24").to_ndarray(), rotation)
         except av.error.FFmpegError as exc:
             raise InputError(f"{path}: video could not be decoded ({exc.__class__.__name__})") from None
 

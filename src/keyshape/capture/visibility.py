@@ -31,7 +31,7 @@ import numpy as np
 
 from ..schemes import eye_corners, face_triangles
 
-__all__ = ["estimate_visibility", "visibility_from_patches", "read_patches", "facing"]
+__all__ = ["estimate_visibility", "visibility_from_patches", "read_patches", "sample_frames", "facing"]
 
 PATCH_RADIUS = 0.06  # of the inter-ocular distance
 PATCH_GRID = 5
@@ -175,6 +175,14 @@ def facing(points: np.ndarray) -> np.ndarray:
     return toward
 
 
+def sample_frames(points: np.ndarray) -> np.ndarray:
+    """The frames whose patches make the exemplars: up to ``N_SAMPLE`` of the frames with a face,
+    evenly spread. points : (n_frames, n_landmarks, 2 or 3) -> (n_sample,) int, increasing."""
+    points = np.asarray(points)
+    valid = np.flatnonzero(np.isfinite(points[:, :, :2]).all(axis=(1, 2)))
+    return np.unique(valid[np.linspace(0, len(valid) - 1, min(N_SAMPLE, len(valid))).astype(int)])
+
+
 def visibility_from_patches(patches_sample: np.ndarray, patches: np.ndarray, points: np.ndarray,
                             *, neighbours: np.ndarray | None = None, unread: np.ndarray | None = None) -> np.ndarray:
     """Visibility from patches: the core of :func:`estimate_visibility`, without video decoding.
@@ -232,8 +240,7 @@ def estimate_visibility(path: str | Path, points: np.ndarray, *, start: int = 0,
     from .video import iter_frames
 
     points = np.asarray(points)
-    valid = np.flatnonzero(np.isfinite(points[:, :, :2]).all(axis=(1, 2)))
-    sample = set(valid[np.linspace(0, len(valid) - 1, min(N_SAMPLE, len(valid))).astype(int)].tolist())
+    sample = set(sample_frames(points).tolist())
     sampled = [read_patches(rgb, points[i]) for i, (_, rgb) in zip(range(len(points)), iter_frames(
         path, start=start, end=end, fps=fps)) if i in sample]
     reference = _Reference(np.stack(sampled))
