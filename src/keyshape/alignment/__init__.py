@@ -8,7 +8,7 @@ how sure a choice is.
 """
 
 from ._neutral import NeutralChoice, activation, choose_neutral_frame, explain_neutral, least_activated
-from ._procrustes import align, choose_neutral, procrustes
+from ._procrustes import align, choose_neutral, procrustes, to_canonical
 
 __all__ = ["align", "choose_neutral", "choose_neutral_frame", "explain_neutral", "least_activated", "activation",
-           "NeutralChoice", "procrustes"]
+           "NeutralChoice", "procrustes", "to_canonical"]

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..containers import Track
-from ._procrustes import _to_canonical, choose_neutral, procrustes
+from ._procrustes import choose_neutral, procrustes, to_canonical
 
 __all__ = ["NeutralChoice", "activation", "least_activated", "choose_neutral_frame", "explain_neutral"]
 
@@ -137,5 +137,5 @@ def explain_neutral(track: Track, frame: int, *, stable: np.ndarray, scale: floa
 def _distance(track: Track, a: int, b: int, stable: np.ndarray) -> float:
     """RMS landmark distance between frames ``a`` and ``b`` after aligning ``b`` onto ``a``."""
     pair = track.points[[b]]
-    aligned = _to_canonical(pair, procrustes(track.points[a][stable], pair[:, stable]))[0]
+    aligned = to_canonical(pair, procrustes(track.points[a][stable], pair[:, stable]))[0]
     return float(np.sqrt(((aligned - track.points[a]) ** 2).sum(axis=1).mean()))

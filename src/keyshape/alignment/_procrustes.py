@@ -25,7 +25,7 @@ import numpy as np
 from ..containers import Poses, Track
 from ..exceptions import DegenerateFrameWarning, InputError, KeyshapeError
 
-__all__ = ["procrustes", "align", "choose_neutral"]
+__all__ = ["procrustes", "align", "choose_neutral", "to_canonical"]
 
 
 def procrustes(source: np.ndarray, target: np.ndarray, *, scale: bool = True) -> Poses:
@@ -167,14 +167,18 @@ def align(
     ref = _check_reference(track, reference)
     stable = _check_indices(stable, track.n_landmarks, name="stable")
     poses = procrustes(ref[stable], track.points[:, stable], scale=scale)
-    return track.with_points(_to_canonical(track.points, poses)), poses
+    return track.with_points(to_canonical(track.points, poses)), poses
 
 
 _CHUNK = 2048  # frames transformed at a time: the temporaries stay in cache
 
 
-def _to_canonical(points: np.ndarray, poses: Poses) -> np.ndarray:
-    """Invert the poses: ``Rᵀ (x - t) / s`` for points ``(n_frames, n_points, d)``."""
+def to_canonical(points: np.ndarray, poses: Poses) -> np.ndarray:
+    """Invert the poses: ``Rᵀ (x - t) / s`` for points ``(n_frames, n_points, d)`` (read-only result).
+
+    ``align`` is :func:`procrustes` on the stable points, then this on every landmark; a caller
+    that streams a take does the two steps chunk by chunk, on the landmarks it needs.
+    """
     # f: frame, p: point, i/j: dimension. Rᵀ (x - t) per point is the row (x - t) @ R:
     # out[f, p, i] = Σ_j (x[f, p, j] - t[f, j]) · R[f, j, i] / s[f], one batched matmul per chunk
     scaled = poses.rotations / poses.scales[:, None, None]
@@ -254,7 +258,7 @@ def choose_neutral(track: Track, *, stable: np.ndarray, regions: dict | None = N
     raw = points = track.points[valid]
     for step in range(2):  # the median start, then one GPA iteration onto the mean
         reference = np.median(raw, axis=0) if step == 0 else np.nanmean(points, axis=0)
-        points = _to_canonical(raw, procrustes(reference[stable], raw[:, stable]))
+        points = to_canonical(raw, procrustes(reference[stable], raw[:, stable]))
     return int(valid[_nearest_to_median(points, _region_landmarks(regions, track.n_landmarks))])
 
 

@@ -2,6 +2,8 @@
 
 * :func:`discover_keys` / :func:`solve_take` — tracks → key shapes (align, neutral, regions,
   search) and a track → weights, head poses and gaze (library level, no files);
+* :func:`solve_track_file` — ``keyshape solve``: :func:`solve_take` on a track file, streamed
+  chunk by chunk (a long take's landmarks are never all in memory);
 * :func:`extend_keys` / :func:`coverage` — a sculpted key set on a new take: the fewest keys
   to add, and how well it reaches the take;
 * :func:`run_take` / :class:`RunOptions` — ``keyshape run``: one video to a take folder;
@@ -13,10 +15,11 @@
 from importlib import import_module
 
 # Each name is imported from its module on first use, so a verb loads only the stages it runs
-# (``keyshape solve`` needs _pipeline, not batch, Ray, rendering or the sculpt kit).
+# (``keyshape solve`` needs _stream and _pipeline, not batch, Ray, rendering or the sculpt kit).
 _LAZY = {
     **dict.fromkeys(("discover_keys", "extend_keys", "coverage", "Coverage", "solve_take", "Solved",
                      "fit_errors", "head_poses", "head_and_gaze", "arkit_scores", "key_scores"), "_pipeline"),
+    **dict.fromkeys(("solve_track_file", "SolvedFile"), "_stream"),
     **dict.fromkeys(("run_take", "RunOptions", "TakeSummary", "OUTPUT_FILES", "default_character_extras"), "_run"),
     **dict.fromkeys(("batch", "BatchRow", "find_takes", "format_table", "is_complete", "make_runner",
                      "VIDEO_SUFFIXES", "write_summary", "SequentialRunner"), "_batch"),

@@ -18,11 +18,10 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> None:
-    from ..app import solve_take
-    from ..io import load_keys, load_track, save_weights_csv
+    from ..app import solve_track_file
+    from ..io import load_keys, save_weights_csv
 
-    track = load_track(args.track)
     keys = load_keys(args.keys)
-    solved = solve_take(track, keys, **solve_kwargs(args))
+    solved = solve_track_file(args.track, keys, **solve_kwargs(args))  # streamed: no take-sized copies
     save_weights_csv(solved.weights, args.output)
     say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys; {solved.gaps}")

@@ -3,13 +3,16 @@
 * :func:`solve_weights` — a take on its key shapes, region by region (the public entry);
 * :func:`solve_nnls` — per-frame bounded NNLS (Lawson & Hanson; block principal pivoting);
 * :func:`solve_spacetime` — the whole take at once with zero-lag temporal smoothness (ADMM with a
-  duality certificate, finished by Newton / active-set steps).
+  duality certificate, finished by Newton / active-set steps);
+* :class:`GramTake` — a long take reduced chunk by chunk to the Gram form the solvers read, then
+  solved as :func:`solve_weights` solves it (``keyshape solve`` streams a track file through it).
 
-Private modules: ``_solve`` (the public functions and their checks), ``_nnls`` and ``_reduced``
+Private modules: ``_solve`` (the public functions and their checks), ``_gramtake``, ``_nnls`` and ``_reduced``
 (batched per-frame NNLS), ``_spacetime``, ``_sequence`` and ``_activeset`` (the smoothed solve),
 ``_kernels`` and ``_kernels_nnls`` (the numba-compiled kernels; numba is imported only there).
 """
 
+from ._gramtake import GramTake
 from ._solve import check_upper, solve_nnls, solve_spacetime, solve_weights
 
-__all__ = ["solve_weights", "solve_nnls", "solve_spacetime", "check_upper"]
+__all__ = ["solve_weights", "solve_nnls", "solve_spacetime", "check_upper", "GramTake"]

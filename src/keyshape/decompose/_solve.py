@@ -237,16 +237,27 @@ def _solve_seen(A, B, track, landmarks, upper, smoothness, convex, tol):
 
 def _solve_region(A, B, upper, smoothness, convex, tol=1e-7):
     """(n_frames, K): per-frame NNLS, or the spacetime solve when ``smoothness > 0``."""
-    G = A.T @ A
+    C, sq = reduce_rows(A, B)
+    return solve_reduced(A.T @ A, C, sq, upper, smoothness, convex, tol)
+
+
+def reduce_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Gram form of frames ``B (n, m)``: ``C = B A (n, K)`` and ``‖b_t‖² (n,)``, NaN rows
+    (frames without a face) NaN in both. All the solvers read of the frames."""
+    return B @ A, np.einsum("fm,fm->f", B, B)
+
+
+def solve_reduced(G, C, sq, upper, smoothness, convex, tol=1e-7):
+    """(n_frames, K) weights of one region from its Gram form: ``G = AᵀA (K, K)``, ``C (n, K)`` and
+    ``sq (n,)`` from :func:`reduce_rows` (NaN rows are frames without data)."""
     if smoothness == 0.0:
-        return nnls_gram(G, B @ A, upper, convex)
-    valid = np.isfinite(B).all(axis=1)
-    C = B @ A  # rows with a NaN give NaN rows here, and are zeroed: no copy of B is made
-    C[~valid] = 0.0
-    mu = smoothness * np.trace(G) / max(A.shape[1], 1)
+        return nnls_gram(G, C, upper, convex)
+    valid = np.isfinite(sq)
+    C = np.where(valid[:, None], C, 0.0)
+    mu = smoothness * np.trace(G) / max(G.shape[0], 1)
     if mu == 0.0:  # all keys are zero: nothing to smooth
         return np.where(valid[:, None], nnls_gram(G, C, upper, convex), np.nan)
-    const = float(np.einsum("fm,fm->f", B, B)[valid].sum())
+    const = float(sq[valid].sum())
     return spacetime_gram(G, C, valid, const, mu, upper, convex, rtol=tol)
 
 

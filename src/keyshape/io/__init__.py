@@ -15,9 +15,10 @@ from .atomic import atomic_path
 from .keys_json import load_keys, save_keys
 from .rig import RIG_SUFFIXES, load_rig, parse_unit, read_obj, save_obj_folder
 from .take import load_take_info, save_take_info
-from .track import load_track, save_track
+from .track import TrackFile, load_track, open_track, save_track
 from .weights_csv import load_weights_csv, save_weights_csv
 
-__all__ = ["load_track", "save_track", "load_keys", "save_keys", "load_weights_csv", "save_weights_csv",
+__all__ = ["load_track", "save_track", "open_track", "TrackFile", "load_keys", "save_keys", "load_weights_csv",
+           "save_weights_csv",
            "load_take_info", "save_take_info", "load_rig", "parse_unit", "read_obj", "save_obj_folder",
            "RIG_SUFFIXES", "export", "Format", "format_of", "atomic_path"]

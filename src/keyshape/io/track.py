@@ -7,8 +7,12 @@ load as all visible. Every file read is checked by :func:`keyshape.io.validate.c
 
 from __future__ import annotations
 
+import struct
 import zipfile
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +20,9 @@ import numpy as np
 from ..containers import Track
 from ..exceptions import InputError
 from .atomic import atomic_path, existing_file
-from .validate import check_track_arrays
+from .validate import PointsCheck, check_track_arrays
 
-__all__ = ["save_track", "load_track"]
+__all__ = ["save_track", "load_track", "open_track", "TrackFile"]
 
 FORMAT_VERSION = 1
 
@@ -117,20 +121,164 @@ def load_track(path: str | Path, *, fps: float | None = None) -> Track:
         raise InputError(f"{path}: {exc}") from None
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    """Every array of an .npz file; the file is opened here, so it is closed however it fails."""
+def _read_npz(path: Path, skip: str = "") -> dict[str, np.ndarray]:
+    """Every array of an .npz file (but ``skip``); the file is opened here, so it is closed however it fails."""
     try:
         with open(path, "rb") as fh:
             loaded = np.load(fh, allow_pickle=False)
             if not isinstance(loaded, np.lib.npyio.NpzFile):
                 raise InputError(f"{path}: not a .npz track file (it holds a single array)")
             with loaded as data:
-                return {k: data[k] for k in data.files}
+                return {k: data[k] for k in data.files if k != skip}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error, KeyError, NotImplementedError,
             RuntimeError, TypeError) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"{path}: not a readable .npz track file ({exc.__class__.__name__})") from None
+
+
+@dataclass(frozen=True, eq=False)
+class TrackFile:
+    """A track file opened for one pass over its frames (:func:`open_track`).
+
+    Every array but ``points`` is read and checked; the points are read a chunk of frames at a
+    time by :meth:`chunks`, and checked as they are read, so a long take never needs a copy of
+    all its landmarks in memory.
+
+    Attributes
+    ----------
+    path : Path
+    shape : (n_frames, n_landmarks, n_dims)
+    fps : float
+    frame_index, time : (n_frames,) int and float, or None (the Track defaults)
+    visibility : (n_frames, n_landmarks) float32 or None
+    """
+
+    path: Path
+    shape: tuple[int, int, int]
+    fps: float
+    frame_index: np.ndarray | None
+    time: np.ndarray | None
+    visibility: np.ndarray | None
+    _offset: int | None
+    _dtype: np.dtype
+
+    n_frames = property(lambda self: self.shape[0])
+    n_landmarks = property(lambda self: self.shape[1])
+    n_dims = property(lambda self: self.shape[2])
+
+    def chunks(self, landmarks: np.ndarray, *, frames: int = 4096) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """``(start, face (n,) bool, points (n, n_chosen, n_dims) float)`` for successive chunks of frames.
+
+        ``points`` holds the landmarks ``landmarks`` of frames ``start ... start + n - 1`` as float64;
+        a frame without a face, or with any non-finite coordinate (of any landmark), is all NaN, as
+        in a :class:`~keyshape.containers.Track`. After the last chunk the values of every frame
+        have been checked as :func:`load_track` checks them; a bad file raises
+        :class:`~keyshape.exceptions.InputError` there.
+        """
+        landmarks = np.asarray(landmarks, dtype=np.intp)
+        check = PointsCheck(self.path)
+        with _points_file(self.path, self._offset) as fh:
+            buffer = np.empty((min(frames, self.n_frames), *self.shape[1:]), dtype=self._dtype)
+            for start in range(0, self.n_frames, frames):
+                raw = buffer[: min(frames, self.n_frames - start)]
+                _read_into(fh, raw, self.path)
+                face = check.add(start, raw)
+                points = np.take(raw, landmarks, axis=1).astype(np.float64)
+                points[~face] = np.nan
+                yield start, face, points
+        check.finish()
+
+    def load(self) -> Track:
+        """The whole take, as :func:`load_track` reads it."""
+        return load_track(self.path)
+
+
+def open_track(path: str | Path) -> TrackFile | None:
+    """Open a keyshape ``.npz`` track for a pass over its frames (:meth:`TrackFile.chunks`).
+
+    The file is checked as :func:`load_track` checks it, the points' values as they are read.
+    None for a file whose points are not streamed (a landmark CSV, an array in Fortran order, a
+    file ``np.load`` reads but this reader does not): :func:`load_track` reads (or refuses) it.
+    """
+    path = existing_file(path)
+    if path.suffix.lower() == ".csv":
+        return None
+    try:
+        offset, dtype, shape = _points_layout(path)
+    except _NotStreamable:
+        return None
+    arrays = _read_npz(path, skip="points")
+    arrays["points"] = np.broadcast_to(np.zeros((), dtype=dtype), shape)  # its shape and type, no data
+    check_track_arrays(path, arrays, points_values=False)
+    return TrackFile(path, tuple(shape), float(np.asarray(arrays["fps"]).reshape(-1)[0]), arrays.get("frame_index"),
+                     arrays.get("time"), arrays.get("visibility"), offset, dtype)
+
+
+class _NotStreamable(Exception):
+    """The points of this file are read whole (by :func:`load_track`)."""
+
+
+def _points_layout(path: Path) -> tuple[int | None, np.dtype, tuple[int, ...]]:
+    """``(offset, dtype, shape)`` of a track file's ``points.npy``: ``offset`` is where its data
+    starts in the file when the member is stored (as :func:`save_track` writes), None when it is
+    deflated (read through :mod:`zipfile`). Raises :class:`_NotStreamable` for what only
+    ``np.load`` reads (Fortran order, a header of another version, not a zip file)."""
+    try:
+        with zipfile.ZipFile(path) as zf, open(path, "rb") as raw:
+            info = zf.getinfo("points.npy")
+            offset = None
+            if info.compress_type == zipfile.ZIP_STORED:
+                raw.seek(info.header_offset)
+                head = raw.read(30)  # the local file header: name and extra field lengths at 26..29
+                if len(head) < 30 or head[:4] != b"PK\x03\x04":
+                    raise _NotStreamable
+                name_len, extra_len = struct.unpack("<HH", head[26:30])
+                raw.seek(info.header_offset + 30 + name_len + extra_len)
+                dtype, shape = _npy_header(raw)
+                offset = raw.tell()
+            else:
+                with zf.open(info) as fh:
+                    dtype, shape = _npy_header(fh)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError, zlib.error, struct.error) as exc:
+        raise _NotStreamable from exc
+    return offset, dtype, shape
+
+
+def _npy_header(fh) -> tuple[np.dtype, tuple[int, ...]]:
+    """``(dtype, shape)`` of the ``.npy`` data at ``fh``, which is left at the first value."""
+    version = np.lib.format.read_magic(fh)
+    if version not in ((1, 0), (2, 0)):
+        raise _NotStreamable
+    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, fortran, dtype = read(fh)
+    if fortran or len(shape) != 3 or dtype.hasobject:
+        raise _NotStreamable
+    return dtype, shape
+
+
+@contextmanager
+def _points_file(path: Path, offset: int | None):
+    """A binary file positioned at the first value of a track file's points."""
+    if offset is not None:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            yield fh
+    else:
+        with zipfile.ZipFile(path) as zf, zf.open("points.npy") as fh:
+            _npy_header(fh)
+            yield fh
+
+
+def _read_into(fh, array: np.ndarray, path: Path) -> None:
+    """Fill the C-contiguous ``array`` from ``fh``; a file that ends early is an InputError."""
+    view = memoryview(array.reshape(-1).view(np.uint8))
+    done = 0
+    while done < len(view):
+        n = fh.readinto(view[done:])
+        if not n:
+            raise InputError(f"{path}: not a readable .npz track file (points end early)")
+        done += n
 
 
 def _csv_layout(path: Path, header: list[str]) -> tuple[int, int]:

@@ -39,11 +39,14 @@ def _show(value) -> str:
 
 # -- track .npz ---------------------------------------------------------------------------------
 
-def check_track_arrays(path, arrays: dict[str, np.ndarray]) -> None:
+def check_track_arrays(path, arrays: dict[str, np.ndarray], *, points_values: bool = True) -> None:
     """Check the arrays of a track file: ``points (n_frames, n_landmarks, 2|3)`` finite or NaN
     frames, at least one face, within ±:data:`MAX_COORDINATE`; ``fps`` > 0; the optional
     ``frame_index``, ``time``, ``image_size``, ``blendshapes``, ``blendshape_names`` and
-    ``head_matrix`` of matching shapes."""
+    ``head_matrix`` of matching shapes.
+
+    ``points_values=False`` checks the points' shape and type only: a reader that streams the
+    points checks their values chunk by chunk as it reads them (:class:`PointsCheck`)."""
     missing = {"points", "fps"} - set(arrays)
     if missing:
         raise InputError(f"{path}: track file lacks {sorted(missing)} (needs 'points' and 'fps')")
@@ -51,7 +54,8 @@ def check_track_arrays(path, arrays: dict[str, np.ndarray]) -> None:
     if not _numeric(points) or points.ndim != 3 or points.shape[2] not in (2, 3) or 0 in points.shape[:2]:
         raise _fail(path, "points", f"must have shape (n_frames, n_landmarks, 2 or 3), numbers; got "
                                     f"{points.shape} {points.dtype}")
-    _check_points_values(path, points)
+    if points_values:
+        _check_points_values(path, points)
     _check_fps(path, arrays["fps"])
     n = points.shape[0]
     if "frame_index" in arrays:
@@ -65,20 +69,59 @@ def _numeric(array: np.ndarray) -> bool:
     return np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
 
 
+_CHECK_FRAMES = 4096  # frames checked at a time: the temporaries stay small however long the take
+
+
 def _check_points_values(path, points: np.ndarray) -> None:
-    values = points if points.dtype.kind == "f" else points.astype(float)  # float32 tracks: no copy
-    finite = np.isfinite(values)
-    bad = ~finite & ~np.isnan(values)
-    if bad.any():
-        frame = int(np.argwhere(bad)[0][0])
-        raise _fail(path, "points", f"frame {frame} holds {_show(values[bad][0])} (missing faces are NaN)")
-    large = finite & (np.abs(values) > MAX_COORDINATE)
-    if large.any():
-        frame = int(np.argwhere(large)[0][0])
-        raise _fail(path, "points", f"frame {frame} holds {values[large][0]:.3g}, beyond ±{MAX_COORDINATE:g} "
-                                    "pixels")
-    if not finite.all(axis=(1, 2)).any():
-        raise _fail(path, "points", f"no frame has a face (all {points.shape[0]} frames are NaN)")
+    check = PointsCheck(path)
+    for lo in range(0, points.shape[0], _CHECK_FRAMES):
+        check.add(lo, points[lo : lo + _CHECK_FRAMES])
+    check.finish()
+
+
+class PointsCheck:
+    """The values check of a track's points, fed a chunk of frames at a time, in order.
+
+    :meth:`add` returns each chunk's faces (frames all finite); :meth:`finish` raises what the
+    whole array would have: a non-finite value that is not NaN first, then a coordinate beyond
+    ±:data:`MAX_COORDINATE`, then a take without a face (the first frame of each, in order).
+    """
+
+    def __init__(self, path):
+        self.path, self.bad, self.large, self.faces, self.n_frames = path, None, None, 0, 0
+
+    def add(self, lo: int, chunk: np.ndarray) -> np.ndarray:
+        """(n,) bool, the frames of ``chunk (n, n_landmarks, d)`` (frames ``lo``...) with a face."""
+        values = chunk if chunk.dtype.kind == "f" else chunk.astype(float)  # float32 tracks: no copy
+        flat = values.reshape(len(values), -1)
+        high, low = flat.max(axis=1), flat.min(axis=1)  # NaN or ±inf where a frame is not all finite
+        face = np.isfinite(high) & np.isfinite(low)
+        self.faces += int(face.sum())
+        self.n_frames += len(face)
+        rest = np.flatnonzero(~face)  # frames without a face, or partly finite: looked at closely
+        if self.bad is None and rest.size:
+            bad = np.isinf(flat[rest])
+            if bad.any():
+                row, col = np.argwhere(bad)[0]
+                self.bad = (lo + int(rest[row]), flat[rest[row], col])
+        if self.large is None and self.bad is None:
+            extreme = max(float(high[face].max(initial=0.0)), -float(low[face].min(initial=0.0)))
+            if rest.size:  # partly finite frames count too (fmax/fmin skip NaN)
+                extreme = max(extreme, float(np.fmax.reduce(np.abs(flat[rest]), axis=None)))
+            if extreme > MAX_COORDINATE:
+                large = np.isfinite(flat) & (np.abs(flat) > MAX_COORDINATE)
+                row, col = np.argwhere(large)[0]
+                self.large = (lo + int(row), flat[row, col])
+        return face
+
+    def finish(self) -> None:
+        if self.bad is not None:
+            raise _fail(self.path, "points", f"frame {self.bad[0]} holds {_show(self.bad[1])} (missing faces are NaN)")
+        if self.large is not None:
+            raise _fail(self.path, "points", f"frame {self.large[0]} holds {self.large[1]:.3g}, beyond "
+                                             f"±{MAX_COORDINATE:g} pixels")
+        if not self.faces:
+            raise _fail(self.path, "points", f"no frame has a face (all {self.n_frames} frames are NaN)")
 
 
 def _check_fps(path, fps) -> None:

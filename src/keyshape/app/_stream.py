@@ -1,0 +1,88 @@
+"""``keyshape solve`` on a track file: the take streamed through alignment into the solvers' Gram form.
+
+:func:`solve_take` holds a take's landmarks twice (the track and its aligned copy; 100,000
+frames of 478 points are 1.15 GB each in float64), though the solvers read of each frame only
+``c_t = Aᵀ b_t`` and ``‖b_t‖²`` per region (:class:`keyshape.decompose.GramTake`). Here a chunk
+of frames at a time is read, aligned on the stable points (Umeyama, batched), brought into the
+canonical frame on the regions' landmarks only, and reduced; then the whole take is solved on
+the reduced data, exactly as :func:`solve_take` solves it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..alignment import procrustes, to_canonical
+from ..capture.filters import GapReport, gap_report, hold_neutral
+from ..containers import KeyShapes, Weights
+from ..decompose import GramTake
+from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
+from ..exceptions import InputError
+from ..io import TrackFile, load_track, open_track
+from ..schemes import stable_points
+from ._pipeline import _fill_hidden, _segments, solve_take
+
+__all__ = ["solve_track_file", "SolvedFile"]
+
+CHUNK = 4096  # frames read, aligned and reduced at a time (about 20 MB of float32 points at 478 landmarks)
+
+
+@dataclass(frozen=True)
+class SolvedFile:
+    """A track file decomposed on a key set: weights : Weights (n_frames, n_keys); gaps : GapReport."""
+
+    weights: Weights
+    gaps: GapReport
+
+
+def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = DEFAULT_SMOOTHNESS,
+                     upper: float | None = DEFAULT_UPPER, convex: bool = False, max_bridge: float = 0.5,
+                     chunk: int = CHUNK) -> SolvedFile:
+    """The weights of a track file on ``keys``: :func:`solve_take`'s, without the take in memory.
+
+    The points are streamed in chunks of ``chunk`` frames (:meth:`keyshape.io.track.TrackFile.chunks`)
+    when every landmark of the keyed regions is fully visible; a take with hidden landmarks
+    (visibility below 1), whose weighted solve needs the frames themselves, and a file that
+    cannot be streamed (a landmark CSV) are loaded whole and go through :func:`solve_take`.
+    Options as :func:`solve_take`'s.
+    """
+    source = open_track(path)
+    take = GramTake(keys, 0 if source is None else source.n_frames)
+    if source is None or not _all_seen(source, take.landmarks):
+        solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
+                            upper=upper, convex=convex, max_bridge=max_bridge)
+        return SolvedFile(solved.weights, solved.gaps)
+    if source.n_landmarks != keys.n_landmarks or source.n_dims != keys.n_dims:
+        raise InputError(f"the track has {source.n_landmarks} landmarks in {source.n_dims}D but the key set was "
+                         f"made from {keys.n_landmarks} in {keys.n_dims}D")
+    face = _reduce(source, keys, take, chunk)
+    gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
+    values = np.full((source.n_frames, keys.n_keys), np.nan)
+    for start, stop in _segments(gaps):  # held gaps split the take, as in solve_take
+        solved = take.solve(start, stop, upper=upper, smoothness=smoothness, convex=convex)
+        values[start:stop] = _fill_hidden(solved, face[start:stop])
+    if smoothness > 0:
+        values = hold_neutral(values, gaps)
+    return SolvedFile(Weights(values, keys.names, source.fps, source.frame_index, source.time), gaps)
+
+
+def _all_seen(source: TrackFile, landmarks: np.ndarray) -> bool:
+    return source.visibility is None or bool((source.visibility[:, landmarks] >= 1.0).all())
+
+
+def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> np.ndarray:
+    """Fill ``take`` from the file, chunk by chunk; returns the (n_frames,) bool frames with a face."""
+    stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
+    stable = np.asarray(stable) % keys.n_landmarks
+    needed = np.union1d(stable, take.landmarks)  # of the 478 landmarks, the stable and the regions' ones
+    on_stable, on_regions = np.searchsorted(needed, stable), np.searchsorted(needed, take.landmarks)
+    reference = keys.neutral[stable]
+    face = np.zeros(source.n_frames, dtype=bool)
+    for start, seen, points in source.chunks(needed, frames=chunk):
+        face[start : start + len(seen)] = seen
+        poses = procrustes(reference, points[:, on_stable])  # x_image = s R x_canonical + t, per frame
+        take.add(start, to_canonical(points[:, on_regions], poses))
+    return face

@@ -1,0 +1,109 @@
+"""A take in Gram form, filled a chunk of frames at a time, then solved as :func:`solve_weights` would.
+
+Per region the solvers read of frame ``t`` only ``c_t = Aᵀ b_t`` (K numbers) and ``‖b_t‖²``
+(:func:`keyshape.decompose._solve.reduce_rows`): the smoothed solve is a problem over the whole
+take, but in these ``K``-dimensional terms. So a long take is aligned and reduced chunk by chunk,
+and its landmarks (``n_frames × n_landmarks × n_dims``) never exist all at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..containers import KeyShapes
+from ._solve import _check_smoothness, _check_tol, _upper_bounds, reduce_rows, solve_reduced
+
+__all__ = ["GramTake"]
+
+
+@dataclass(frozen=True, eq=False)
+class _Region:
+    keys: np.ndarray  # (K,) int, the region's keys
+    positions: np.ndarray  # (n_region_landmarks,) int, its landmarks in GramTake.landmarks
+    neutral: np.ndarray  # (n_region_landmarks, n_dims)
+    A: np.ndarray  # (m, K), the keys' deltas as columns
+    C: np.ndarray  # (n_frames, K), c_t = Aᵀ b_t
+    sq: np.ndarray  # (n_frames,), ‖b_t‖²
+
+
+class GramTake:
+    """An aligned take on ``keys``, region by region, in the Gram form the solvers read.
+
+    Parameters
+    ----------
+    keys : KeyShapes
+    n_frames : int
+
+    Attributes
+    ----------
+    landmarks : (n_needed,) int
+        The landmarks of the regions with keys, sorted: what :meth:`add` is given of each frame.
+    valid : (n_frames,) bool
+        The frames added with a face.
+
+    Notes
+    -----
+    Every landmark counts fully (no ``visibility``): a take with hidden landmarks goes through
+    :func:`solve_weights`, whose weighted solve needs the frames themselves.
+
+    Examples
+    --------
+    >>> from keyshape.alignment import align
+    >>> from keyshape.datasets import make_performance
+    >>> from keyshape.decompose import solve_weights
+    >>> perf = make_performance(n_frames=40)
+    >>> keys = KeyShapes(perf.neutral, perf.key_deltas, ["a", "b", "c", "d"], perf.extreme_frames,
+    ...                  perf.key_regions, perf.regions)
+    >>> aligned = align(perf.track, reference=keys.neutral, stable=perf.stable)[0]
+    >>> take = GramTake(keys, aligned.n_frames)
+    >>> for lo in range(0, 40, 16):
+    ...     take.add(lo, aligned.points[lo:lo + 16][:, take.landmarks])
+    >>> whole = solve_weights(aligned, keys, smoothness=0.1, upper=1.0).values
+    >>> bool(np.allclose(take.solve(smoothness=0.1, upper=1.0), whole, atol=1e-6))
+    True
+    """
+
+    def __init__(self, keys: KeyShapes, n_frames: int):
+        keyed = [(lm, ks) for r, lm in keys.regions.items() if len(ks := np.asarray(keys.keys_of(r)))]
+        self.n_keys, self.n_frames = keys.n_keys, int(n_frames)
+        self.landmarks = np.unique(np.concatenate([lm for lm, _ in keyed])) if keyed else np.zeros(0, int)
+        self._regions = [self._region(keys, np.asarray(lm), ks) for lm, ks in keyed]
+        self.valid = np.zeros(self.n_frames, dtype=bool)
+
+    def _region(self, keys: KeyShapes, landmarks: np.ndarray, ks: np.ndarray) -> _Region:
+        # k: key, p: region landmark, d: dimension; A[(p, d), k] = deltas[k, p, d]
+        A = keys.deltas[np.ix_(ks, landmarks)].reshape(len(ks), -1).T
+        return _Region(ks, np.searchsorted(self.landmarks, landmarks), keys.neutral[landmarks], A,
+                       np.empty((self.n_frames, len(ks))), np.empty(self.n_frames))
+
+    def add(self, start: int, points: np.ndarray) -> None:
+        """Frames ``start ... start + n - 1``: ``points (n, n_needed, n_dims)`` float, aligned onto
+        the key set's neutral, the landmarks :attr:`landmarks`; NaN frames have no face."""
+        stop = start + len(points)
+        for region in self._regions:
+            B = (points[:, region.positions] - region.neutral).reshape(len(points), -1)  # b_t, flattened
+            region.C[start:stop], region.sq[start:stop] = reduce_rows(region.A, B)
+        self.valid[start:stop] = np.isfinite(points).all(axis=(1, 2))
+
+    def solve(self, start: int = 0, stop: int | None = None, *, upper: float | np.ndarray | None = None,
+              smoothness: float = 0.0, convex: bool = False, tol: float = 1e-7) -> np.ndarray:
+        """(stop - start, n_keys) weights of frames ``start ... stop - 1`` solved as one take.
+
+        The same weights as :func:`keyshape.decompose.solve_weights` on those frames (to the
+        solver's tolerance), with the same options: NaN rows without a face when ``smoothness``
+        is 0; with smoothing gaps between faces bridged and the frames before the first or
+        after the last face NaN.
+        """
+        frames = slice(start, self.n_frames if stop is None else stop)
+        upper = _upper_bounds(upper, self.n_keys)
+        smoothness, tol = _check_smoothness(smoothness), _check_tol(tol)
+        valid = self.valid[frames]
+        values = np.zeros((len(valid), self.n_keys))
+        for r in self._regions:
+            values[:, r.keys] = solve_reduced(r.A.T @ r.A, r.C[frames], r.sq[frames], upper[r.keys], smoothness,
+                                              bool(convex), tol)
+        if smoothness == 0.0:
+            values[~valid] = np.nan
+        return values

@@ -1,0 +1,134 @@
+"""``keyshape solve`` streamed over chunks of frames: the same weights as the whole-take path."""
+
+import numpy as np
+import pytest
+
+from keyshape.alignment import align
+from keyshape.app import solve_take, solve_track_file
+from keyshape.cli import main
+from keyshape.containers import KeyShapes, Track
+from keyshape.datasets import make_performance
+from keyshape.decompose import GramTake, solve_weights
+from keyshape.exceptions import InputError
+from keyshape.io import load_track, load_weights_csv, open_track, save_track
+from keyshape.io.track import write_track_arrays
+from keyshape.io.validate import check_track_arrays
+
+TOL = 1e-6  # the solvers' certificate (1e-7 relative objective gap) keeps weights this close
+
+
+@pytest.fixture(scope="module")
+def perf():
+    return make_performance(n_frames=600, n_landmarks=40, n_keys=6, noise=0.3, n_missing=20, random_state=4)
+
+
+@pytest.fixture(scope="module")
+def keys(perf):
+    names = [f"k{i}" for i in range(perf.n_keys)]
+    return KeyShapes(perf.neutral, perf.key_deltas, names, perf.extreme_frames, perf.key_regions, perf.regions,
+                     stable=perf.stable)
+
+
+def _with_gaps(track: Track) -> Track:
+    points = np.array(track.points)
+    points[100:106] = np.nan  # bridged (6 frames at 30 fps < 0.5 s)
+    points[300:340] = np.nan  # held at neutral
+    points[-3:] = np.nan  # held at the end
+    return Track(points.astype(np.float32), track.fps, frame_index=np.arange(track.n_frames) + 7)
+
+
+@pytest.mark.parametrize("smoothness, upper, convex", [(0.1, 1.0, False), (0.0, 1.0, False), (0.0, None, False),
+                                                       (0.5, 1.0, True)])
+@pytest.mark.parametrize("chunk", [64, 4096])
+def test_solve_track_file_matches_solve_take(perf, keys, tmp_path, smoothness, upper, convex, chunk):
+    track = _with_gaps(perf.track)
+    path = save_track(track, tmp_path / "take.npz")
+    whole = solve_take(load_track(path), keys, smoothness=smoothness, upper=upper, convex=convex)
+    streamed = solve_track_file(path, keys, smoothness=smoothness, upper=upper, convex=convex, chunk=chunk)
+    assert streamed.gaps == whole.gaps
+    np.testing.assert_array_equal(np.isnan(streamed.weights.values), np.isnan(whole.weights.values))
+    np.testing.assert_allclose(streamed.weights.values, whole.weights.values, atol=TOL, rtol=0)
+    np.testing.assert_array_equal(streamed.weights.frame_index, whole.weights.frame_index)
+    np.testing.assert_array_equal(streamed.weights.time, whole.weights.time)
+    assert streamed.weights.names == whole.weights.names and streamed.weights.fps == whole.weights.fps
+
+
+def test_gram_take_matches_solve_weights(perf, keys):
+    aligned = align(perf.track, reference=keys.neutral, stable=perf.stable)[0]
+    take = GramTake(keys, aligned.n_frames)
+    for lo in range(0, aligned.n_frames, 50):
+        take.add(lo, aligned.points[lo : lo + 50][:, take.landmarks])
+    for options in ({"smoothness": 0.1, "upper": 1.0}, {"smoothness": 0.0}):
+        expected = solve_weights(aligned[120:480], keys, **options).values
+        np.testing.assert_allclose(take.solve(120, 480, **options), expected, atol=TOL, rtol=0)
+
+
+def test_hidden_landmarks_take_the_whole_take_path(perf, keys, tmp_path):
+    seen = np.ones(perf.track.points.shape[:2])
+    seen[50:80, perf.regions["lower"]] = 0.2  # a hand over the mouth
+    track = Track(perf.track.points, perf.track.fps, visibility=seen)
+    path = save_track(track, tmp_path / "hidden.npz")
+    whole = solve_take(load_track(path), keys)  # visibility is stored as float32
+    np.testing.assert_array_equal(solve_track_file(path, keys).weights.values, whole.weights.values)
+
+
+def test_a_landmark_csv_is_loaded_whole(keys, perf, tmp_path):
+    path = tmp_path / "take.csv"
+    points = perf.track.points[:40].reshape(40, -1)
+    header = "frame," + ",".join(f"{a}{i}" for i in range(perf.track.n_landmarks) for a in "xyz")
+    np.savetxt(path, np.column_stack([np.arange(40), points]), delimiter=",", header=header, comments="",
+               fmt="%.6f")
+    assert open_track(path) is None
+    whole = solve_take(load_track(path), keys)
+    np.testing.assert_array_equal(solve_track_file(path, keys).weights.values, whole.weights.values)
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_chunks_read_what_load_track_reads(perf, tmp_path, compress):
+    points = np.array(perf.track.points)
+    points[5, 3, 1] = np.nan  # a partly tracked frame is no face, as in a Track
+    path = tmp_path / "t.npz"
+    if compress:  # a file from another tool, deflated and in float64
+        np.savez_compressed(path, points=points, fps=30.0)
+    else:
+        write_track_arrays(path, points=points.astype(np.float32), fps=30.0)
+    source, track = open_track(path), load_track(path)
+    assert source.shape == track.points.shape
+    landmarks = np.array([0, 3, 7, 39])
+    got = np.concatenate([p for _, _, p in source.chunks(landmarks, frames=100)])
+    np.testing.assert_array_equal(got, track.points[:, landmarks])
+    faces = np.concatenate([f for _, f, _ in source.chunks(landmarks, frames=77)])
+    np.testing.assert_array_equal(faces, track.valid)
+
+
+@pytest.mark.parametrize("where, value, message", [
+    ((130, 2, 0), np.inf, "frame 130 holds inf \\(missing faces are NaN\\)"),
+    ((7, 1, 1), -3e6, "frame 7 holds -3e\\+06, beyond ±1e\\+06 pixels"),
+    (None, np.nan, "no frame has a face \\(all 150 frames are NaN\\)"),
+])
+def test_streamed_points_are_checked_as_a_loaded_track(tmp_path, where, value, message):
+    points = np.random.default_rng(0).normal(size=(150, 6, 3)).astype(np.float32)
+    points[where or slice(None)] = value
+    path = tmp_path / "bad.npz"
+    write_track_arrays(path, points=points, fps=30.0)
+    with pytest.raises(InputError, match=message):
+        load_track(path)
+    with pytest.raises(InputError, match=message):
+        for _ in open_track(path).chunks(np.arange(6), frames=64):
+            pass
+    with pytest.raises(InputError, match=message):  # the whole-array check, in chunks too
+        check_track_arrays(path, {"points": points, "fps": np.float64(30)})
+
+
+def test_cli_solve_streams_the_same_weights(perf, keys, tmp_path):
+    from keyshape.io import load_keys, save_keys
+
+    track_path = save_track(_with_gaps(perf.track), tmp_path / "take.npz")
+    keys_path = tmp_path / "keys.json"
+    save_keys(keys, keys_path)
+    main(["solve", str(track_path), str(keys_path), "-o", str(tmp_path / "w.csv"), "-q"])
+    written = load_weights_csv(tmp_path / "w.csv")
+    whole = solve_take(load_track(track_path), load_keys(keys_path)).weights  # keys.json orders keys by region
+    assert written.names == whole.names
+    np.testing.assert_allclose(written.values, whole.values, atol=2e-6, rtol=0)  # CSV keeps 6 decimals
+    np.testing.assert_array_equal(written.frame_index, whole.frame_index)
