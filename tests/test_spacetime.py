@@ -1,5 +1,6 @@
 """The smoothed solve's parts: compiled kernels against independent references, the ADMM
-penalties, and the active-set finish that ADMM hands over to when it stalls."""
+penalties, the active-set finish that ADMM hands over to when it stalls, and its local form
+on windows around long gaps."""
 
 from __future__ import annotations
 
@@ -15,11 +16,15 @@ from keyshape.decompose import _activeset, _kernels, _sequence, _spacetime
 # --------------------------------------------------------------------------- helpers
 
 
-def dense_hessian(seq):
+def sparse_hessian(seq):
     """``P = blockdiag(δ_t G) + μ LᵀL ⊗ I_K`` built from scratch, ``(T·K, T·K)``, frame-major."""
     T, K = seq.C.shape
     L = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(T - 2, T))
-    return (sparse.kron(sparse.diags(seq.delta), seq.G) + seq.mu * sparse.kron(L.T @ L, sparse.eye(K))).toarray()
+    return sparse.csc_matrix(sparse.kron(sparse.diags(seq.delta), seq.G) + seq.mu * sparse.kron(L.T @ L, sparse.eye(K)))
+
+
+def dense_hessian(seq):
+    return sparse_hessian(seq).toarray()
 
 
 def sequence(seed, T=60, K=4, gaps=(), upper=1.0, convex=False, mu=0.5):
@@ -180,7 +185,8 @@ def test_active_set_finish_reaches_the_certified_optimum(convex, gaps, monkeypat
     # no ADMM beyond the first 20 iterations and a target ADMM cannot reach in them:
     # the primal–dual active-set steps must finish
     faces = []
-    monkeypatch.setattr(_spacetime, "face_solve", lambda *a: faces.append(1) or _activeset.face_solve(*a))
+    face_solve = _activeset.face_solve
+    monkeypatch.setattr(_activeset, "face_solve", lambda *a: faces.append(1) or face_solve(*a))
     W_newton, gap_newton = _spacetime.solve_sequence(seq, rtol=1e-12, max_admm=20)
     assert faces, "the active-set steps did not run"
     assert gap_admm <= 1e-9 and gap_newton <= 1e-12
@@ -201,3 +207,85 @@ def test_dual_bound_never_exceeds_the_objective():
     for _ in range(5):  # any multipliers give a lower bound on F* (weak duality)
         Y = _sequence.multipliers(seq, _sequence.project(W + 0.1 * rng.standard_normal(W.shape), seq.upper, True))
         assert _sequence.lower_bound(seq, exact, Y) <= _sequence.objective(seq, W) * (1 + 1e-12)
+
+
+# --------------------------------------------------------------------------- windows
+
+
+def long_gap_sequence(seed, T=1400, K=5, gap=60, every=700, convex=False, mu=0.1):
+    """The benchmark's weak spot in small: a ``gap``-frame gap every ``every`` frames."""
+    gaps = [(a, a + gap) for a in range(every // 2, T - gap - 5, every)]
+    return sequence(seed, T=T, K=K, gaps=gaps, convex=convex, mu=mu, upper=1.0)
+
+
+def test_window_is_the_restricted_qp():
+    seq = sequence(8, T=50, K=3, gaps=[(12, 20)], convex=True)
+    rng = np.random.default_rng(8)
+    Z = _sequence.project(rng.uniform(0, 0.5, (50, 3)), seq.upper, True)
+    mask = np.zeros(50, bool)
+    mask[[0, 1, 2]] = mask[10:23] = mask[25:30] = mask[48:] = True  # runs two or more frames apart
+    sub = _activeset.restrict(seq, Z, mask)
+    np.testing.assert_array_equal(sub.rows, np.flatnonzero(mask))
+    P = dense_hessian(seq)
+    f = np.repeat(mask, 3)
+    for _ in range(3):  # F on the windows, the other frames fixed, is the whole take's F
+        X = rng.uniform(0, 0.5, (mask.sum(), 3))
+        full = Z.copy()
+        full[mask] = X
+        assert _sequence.objective(sub, X) == pytest.approx(_sequence.objective(seq, full), rel=1e-12)
+        np.testing.assert_allclose(_sequence.hessian_mul(sub, X).ravel(), P[np.ix_(f, f)] @ X.ravel(), atol=1e-10)
+    # whole windows taken out of it stay the restricted QP (of those frames)
+    keep = sub.rows >= 10
+    part = _activeset.select(sub, keep)
+    X = rng.uniform(0, 0.5, (keep.sum(), 3))
+    g = np.repeat(_activeset._frames(50, part.rows), 3)
+    np.testing.assert_allclose(_sequence.hessian_mul(part, X).ravel(), P[np.ix_(g, g)] @ X.ravel(), atol=1e-10)
+
+
+def test_windows_cover_the_long_gaps_and_little_else():
+    seq = long_gap_sequence(12)
+    lam = np.linalg.eigvalsh(seq.G)
+    rho = _spacetime.admm_rho(seq, lam)
+    exact = _sequence.EigenSolver(seq, 0.0)
+    start = _sequence.project(exact.solve(seq.C), seq.upper, False)
+    Z, _ = _spacetime.admm(seq, _sequence.EigenSolver(seq, rho), rho, start, np.zeros(seq.C.shape), 90)
+    mask = _activeset.window_frames(seq, Z)
+    assert mask[seq.delta == 0].all()
+    margin = _activeset._margin(seq, lam)
+    assert 4 <= margin < 100
+    assert mask.mean() < 0.2
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
+    assert (edges[2::2] - edges[1:-1:2] >= 2).all()  # windows two or more frames apart: decoupled
+    # where ADMM has not converged away from the gaps, windows would not do: none
+    Z, _ = _spacetime.admm(seq, _sequence.EigenSolver(seq, rho), rho, start, np.zeros(seq.C.shape), 2)
+    assert not _activeset.window_frames(seq, Z).any()
+
+
+@pytest.mark.parametrize(("seed", "mu"), [(11, 0.1), (12, 0.3), (13, 1.0)])
+def test_long_gaps_finish_in_windows_at_the_global_optimum(seed, mu, monkeypatch):
+    seq = long_gap_sequence(seed, mu=mu)
+    windows = []
+    window_frames = _activeset.window_frames
+    monkeypatch.setattr(_activeset, "window_frames", lambda *a: windows.append(window_frames(*a)) or windows[-1])
+    W, gap = _spacetime.solve_sequence(seq, rtol=1e-9)
+    assert windows and windows[0].any(), "the windows were not solved"
+    assert gap <= 1e-9
+    monkeypatch.setattr(_spacetime, "local_finish", lambda *a, **k: None)  # the global active set only
+    W_global, gap_global = _spacetime.solve_sequence(seq, rtol=1e-9)
+    assert gap_global <= 1e-9
+    F = _sequence.objective
+    assert abs(F(seq, W) - F(seq, W_global)) <= 2e-9 * F(seq, W_global)
+
+
+def test_long_gaps_match_clarabel():
+    qpsolvers = pytest.importorskip("qpsolvers")
+    seq = long_gap_sequence(14)
+    W, gap = _spacetime.solve_sequence(seq)
+    assert gap <= 1e-7
+    T, K = seq.C.shape
+    x = qpsolvers.solve_qp(2 * sparse_hessian(seq), -2 * seq.C.ravel(), lb=np.zeros(T * K), ub=np.ones(T * K),
+                           solver="clarabel", tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+    F = _sequence.objective
+    ours, theirs = F(seq, W), F(seq, x.reshape(T, K))
+    assert ours <= theirs * (1 + 1e-7)
+    assert theirs <= ours * (1 + 1e-6)  # Clarabel's own accuracy

@@ -2,18 +2,35 @@
 
 :func:`face_solve` minimises ``F`` exactly on a face of the constraint set (bound variables
 fixed, active ``Σw = 1`` rows enforced) with one banded Cholesky factorisation;
-:func:`exchange` is the primal–dual active-set update (Hintermüller, Ito & Kunisch 2003) and
-:func:`active_set` the monotone primal active-set method (Nocedal & Wright 2006, Alg. 16.3)
-that finishes where the exchanges cycle.
+:func:`exchange` is the primal–dual active-set update (Hintermüller, Ito & Kunisch 2003),
+:func:`newton` its loop, and :func:`active_set` the monotone primal active-set method
+(Nocedal & Wright 2006, Alg. 16.3) that finishes where the exchanges cycle.
+
+:func:`local_finish` runs them on a few frames only. Where ADMM stalls it has stalled
+locally: across a long gap only the smoothness term holds the weights, and ADMM's slow modes
+live there, while on frames with data its error falls by a steady factor per frame of
+distance from the gap (the decay of the Green's function of ``λ I + μ LᵀL``). The frames whose
+optimality residual stands out, widened by a margin that this decay places, and whole gaps
+they touch, form windows; with every other frame fixed at ADMM's values the windows decouple
+from the rest (the smoothness couples a frame to two on either side) and from each other,
+and one small QP (all windows stacked) is solved exactly. The certificate of the whole take
+then says whether that was enough.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import _kernels
 from ._kernels_nnls import FREE, LOWER, UPPER
-from ._sequence import Best, Sequence, hessian_mul, multipliers, project
+from ._sequence import Best, EigenSolver, Sequence, hessian_mul, multipliers, objective, project
+
+_HOT = 1e-3  # a frame's residual above this fraction of the largest marks it for a window
+_REACH = 1e-6  # a window reaches as far as ADMM's error takes to fall by this factor
+_KKT_TOL = 1e-11  # a dimensionless KKT violation below this is none
+_MAX_SHARE = 0.5  # windows over more of the take than this: a face of the whole take is as cheap
 
 _ALM_STEPS = 30  # method-of-multipliers steps per Newton step for active Σw = 1 rows
 
@@ -63,6 +80,33 @@ def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray):
     return X + fixed, nu
 
 
+def newton(seq: Sequence, best: Best, *, rtol: float, max_newton: int, start: np.ndarray | None = None) -> None:
+    """Primal–dual active-set steps from the active set of ``start`` (default ``best.Z``) until
+    ``best`` certifies ``rtol``.
+
+    Each step lands on the exact minimiser of its face; should the exchanges stop shrinking
+    they are damped (:func:`exchange`), and the monotone :func:`active_set` finishes.
+    """
+    state, sums = classify(seq, best.Z if start is None else start)
+    history, limit = [], None
+    for _ in range(max_newton):
+        if best.gap <= rtol:
+            break
+        X, nu = face_solve(seq, state, sums)
+        best.offer(project(X, seq.upper, seq.convex), multipliers(seq, X, state, np.where(sums, nu, 0.0)))
+        state, sums, changed = exchange(seq, state, sums, X, nu, limit)
+        history.append(changed)
+        if changed == 0:
+            break
+        if len(history) > 3 and changed >= history[-4]:  # no progress: damp the exchanges
+            limit = max(1, (limit or changed) // 2)
+            history.clear()
+        if limit == 1:
+            break
+    if best.gap > rtol:  # one face per step: bounded by the problem size
+        active_set(seq, best, max_steps=int(np.clip(2e6 // seq.C.size, 20, 200)))
+
+
 def exchange(seq: Sequence, state, sums, X, nu, limit=None):
     """Primal–dual active-set update: the new ``(state, sums)`` and how many changed.
 
@@ -72,6 +116,12 @@ def exchange(seq: Sequence, state, sums, X, nu, limit=None):
     of the largest (dimensionless) violations change, which damps the cycling a plain
     primal–dual active-set step can fall into on degenerate problems.
     """
+    return _move(state, sums, X, *violations(seq, state, sums, X, nu), limit)
+
+
+def violations(seq: Sequence, state, sums, X, nu):
+    """Dimensionless KKT violations on a face: ``(T, K)`` of the variables, ``(T,)`` of the sum
+    rows; positive where the constraint changes side under :func:`exchange`."""
     grad = hessian_mul(seq, X) - seq.C + np.where(sums, nu, 0.0)[:, None]  # ∇(F/2) + ν·1
     x_scale = 1.0 + np.abs(X).max()
     g_scale = (np.abs(seq.C).max() + np.abs(seq.G).max() + seq.mu) * x_scale
@@ -81,10 +131,14 @@ def exchange(seq: Sequence, state, sums, X, nu, limit=None):
     rows = np.full(len(X), -np.inf)
     if seq.convex:
         rows = np.where(sums, -nu / g_scale, (X.sum(axis=1) - 1.0) / x_scale)
+    return size, rows
+
+
+def _move(state, sums, X, size, rows, limit):
     if limit is not None:
         cut = np.sort(np.concatenate([size.ravel(), rows]))[-limit]
         size, rows = np.where(size >= cut, size, 0.0), np.where(rows >= cut, rows, 0.0)
-    move, flip = size > 1e-11, rows > 1e-11
+    move, flip = size > _KKT_TOL, rows > _KKT_TOL
     to_bound = np.where(X < 0.0, LOWER, UPPER)
     new = np.where(move, np.where(state == FREE, to_bound, FREE), state).astype(np.int8)
     return new, sums ^ flip, int(move.sum() + flip.sum())
@@ -156,3 +210,137 @@ def _release(seq, state, sums, X, nu) -> bool:
     else:
         state[i] = FREE
     return True
+
+
+# --------------------------------------------------------------------------- windows
+
+
+@dataclass(frozen=True, eq=False)
+class Window(Sequence):
+    """Some frames of a :class:`Sequence` (``rows``, in runs) with all the others fixed.
+
+    ``C`` holds ``δ_t c_t − μ (LᵀL Z_out)_t``, the pull of the fixed frames through the
+    smoothness; ``diagonals`` are the rows' block of ``LᵀL`` (couplings to frames outside
+    removed), which :attr:`gram` returns instead of the second-difference Gram of ``T`` frames.
+    ``const`` makes :func:`keyshape.decompose._sequence.objective` the whole take's ``F``.
+    """
+
+    diagonals: tuple = ()
+    rows: np.ndarray | None = None
+
+    gram = property(lambda self: self.diagonals)
+
+
+def local_finish(seq: Sequence, best: Best, *, rtol: float, max_newton: int) -> None:
+    """Solve the windows around ``best.Z``'s unconverged frames exactly; offer the result to ``best``.
+
+    Primal–dual active-set steps (:func:`exchange`) on all windows at once; a window whose
+    active set no longer changes sits at its exact minimiser and leaves, so later steps cost
+    only the windows still moving. Windows whose exchanges cycle are finished by
+    :func:`active_set`.
+    """
+    mask = window_frames(seq, best.Z)
+    if not mask.any():
+        return
+    whole = restrict(seq, best.Z, mask)
+    run = np.cumsum(np.append(True, np.diff(whole.rows) > 1)) - 1  # (rows,) window of each row
+    X = np.array(best.Z[whole.rows])
+    state, sums = classify(whole, X)
+    moving, history, limit = np.ones(len(X), bool), [], None
+    for _ in range(max_newton):
+        sub = select(whole, moving)
+        X[moving], nu = face_solve(sub, state[moving], sums[moving])
+        size, rows = violations(sub, state[moving], sums[moving], X[moving], nu)
+        wrong = (size > _KKT_TOL).any(axis=1) | (rows > _KKT_TOL)
+        state[moving], sums[moving], changed = _move(state[moving], sums[moving], X[moving], size, rows, limit)
+        moving &= np.isin(run, run[moving][wrong])  # a window without violations is at its minimiser
+        history.append(changed)
+        if not moving.any() or limit == 1:
+            break
+        if len(history) > 3 and changed >= history[-4]:  # no progress: damp the exchanges
+            limit = max(1, (limit or changed) // 2)
+            history.clear()
+    Z = best.Z.copy()
+    Z[whole.rows] = project(X, seq.upper, seq.convex)
+    if moving.any():  # cycling windows: the monotone method, from their best point so far
+        sub = restrict(seq, Z, _frames(len(Z), whole.rows[moving]))
+        local = Best(sub, EigenSolver(sub, 0.0), np.ascontiguousarray(Z[sub.rows]))
+        active_set(sub, local, max_steps=int(np.clip(2e6 // sub.C.size, 20, 200)))
+        Z[sub.rows] = local.Z
+    best.offer(Z)
+
+
+def select(window: Window, keep: np.ndarray) -> Window:
+    """The rows ``keep`` (whole windows) of ``window``: still decoupled, their ``const`` dropped."""
+    d0, d1, d2 = window.diagonals
+    return Window(window.G, np.ascontiguousarray(window.C[keep]), window.delta[keep], window.mu, window.upper,
+                  window.convex, 0.0, (d0[keep], d1[keep], d2[keep]), window.rows[keep])
+
+
+def _frames(n_frames: int, rows: np.ndarray) -> np.ndarray:
+    mask = np.zeros(n_frames, bool)
+    mask[rows] = True
+    return mask
+
+
+def window_frames(seq: Sequence, Z: np.ndarray) -> np.ndarray:
+    """(T,) bool: the frames of the windows around ``Z``'s largest optimality residuals; none
+    where ADMM has not converged outside them (windows would not help) or where they would
+    cover more than :data:`_MAX_SHARE` of the take (a face of the whole take costs as much).
+
+    The residual of frame ``t`` is ``‖z_t − Π_C(z_t + g_t / L_t)‖`` (``g = c − PZ``,
+    ``L_t = δ_t λ_max + 16μ`` its curvature): zero exactly at the optimum.
+    """
+    lam = np.linalg.eigvalsh(seq.G)
+    g = seq.C - hessian_mul(seq, Z)
+    step = g / (seq.delta * lam[-1] + 16.0 * seq.mu)[:, None]
+    residual = np.linalg.norm(Z - project(Z + step, seq.upper, seq.convex), axis=1)
+    if not residual.max() > 0.0:
+        return np.zeros(len(Z), bool)
+    hot = _dilate(residual > _HOT * residual.max(), 1)
+    gap = seq.delta == 0.0
+    runs = np.cumsum(np.diff(np.concatenate([[False], gap])) > 0) * gap  # gap runs numbered 1, 2, ...
+    hot |= np.isin(runs, runs[hot & gap]) & gap  # a window that reaches a gap spans it
+    mask = _dilate(hot, _margin(seq, lam))
+    mask |= np.roll(mask, 1) & np.roll(mask, -1)  # no 1-frame holes: two windows would share a row of L
+    if mask.mean() > _MAX_SHARE or residual[~mask].max() > _REACH * residual.max():
+        return np.zeros(len(Z), bool)
+    return mask
+
+
+def _margin(seq: Sequence, lam: np.ndarray) -> int:
+    """Frames over which the slowest mode with data, ``λ_min I + μ LᵀL``, decays by :data:`_REACH`.
+
+    Its Green's function falls by ``|z|`` per frame, ``z`` the root inside the unit circle of
+    ``(z − 2 + 1/z)² = −λ_min / μ``.
+    """
+    w = 2.0 + 1j * np.sqrt(max(lam[0], 0.0) / seq.mu)
+    z = abs((w - np.sqrt(w * w - 4.0)) / 2.0)
+    z = min(z, 1.0 / z) if z > 0.0 else 0.0
+    if not 0.0 < z < 1.0:
+        return len(seq.delta)
+    return int(np.clip(np.ceil(np.log(_REACH) / np.log(z)) + 2, 4, len(seq.delta)))
+
+
+def _dilate(mask: np.ndarray, reach: int) -> np.ndarray:
+    """Frames within ``reach`` of a True frame."""
+    count = np.concatenate([[0], np.cumsum(mask)])
+    n = len(mask)
+    t = np.arange(n)
+    return count[np.minimum(t + reach + 1, n)] - count[np.maximum(t - reach, 0)] > 0
+
+
+def restrict(seq: Sequence, Z: np.ndarray, mask: np.ndarray) -> Window:
+    """The QP on the frames of ``mask`` (runs at least two frames apart) with the others at ``Z``."""
+    rows = np.flatnonzero(mask)
+    d0, d1, d2 = seq.gram
+    outside = np.ascontiguousarray(np.where(mask[:, None], 0.0, Z))
+    pull = np.zeros_like(outside)  # μ (LᵀL Z_out): the fixed frames' pull through the smoothness
+    _kernels.add_smoothness(pull, outside, np.zeros(len(Z)), float(seq.mu), d0, d1, d2)
+    nxt = np.append(rows[1:], -1) == rows + 1  # the next row is the next frame
+    nxt2 = np.append(rows[2:], [-1, -1]) == rows + 2
+    diagonals = (d0[rows], np.where(nxt, d1[rows], 0.0), np.where(nxt2, d2[rows], 0.0))
+    C = np.ascontiguousarray(seq.C[rows] - pull[rows])
+    sub = Window(seq.G, C, seq.delta[rows], seq.mu, seq.upper, seq.convex, 0.0, diagonals, rows)
+    const = objective(seq, Z) - objective(sub, Z[rows])
+    return Window(seq.G, C, seq.delta[rows], seq.mu, seq.upper, seq.convex, const, diagonals, rows)

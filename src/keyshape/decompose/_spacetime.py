@@ -61,9 +61,9 @@ import numpy as np
 
 from ..exceptions import ConvergenceWarning
 from . import _kernels
-from ._activeset import active_set, classify, exchange, face_solve
+from ._activeset import local_finish, newton
 from ._nnls import Gram, cap_sum, nnls_gram
-from ._sequence import Best, EigenSolver, Sequence, multipliers, project
+from ._sequence import Best, EigenSolver, Sequence, project
 
 _NEWTON_COST = 100  # ADMM iterations one active-set Newton step costs (measured at K = 12)
 _MAX_ROUND = 30  # ADMM iterations between certificates at most: the rate estimate can be pessimistic
@@ -158,24 +158,11 @@ def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, sw
         if need > _NEWTON_COST and best.gap <= switch:
             break
         rounds = int(np.clip(np.ceil(1.25 * need) + 1, 2, _MAX_ROUND))  # a missed certificate costs more
-    state, sums = classify(seq, best.Z)
-    history, limit = [], None
-    for _ in range(max_newton):
-        if best.gap <= rtol:
-            break
-        X, nu = face_solve(seq, state, sums)
-        best.offer(project(X, seq.upper, seq.convex), multipliers(seq, X, state, np.where(sums, nu, 0.0)))
-        state, sums, changed = exchange(seq, state, sums, X, nu, limit)
-        history.append(changed)
-        if changed == 0:
-            break
-        if len(history) > 3 and changed >= history[-4]:  # no progress: damp the exchanges
-            limit = max(1, (limit or changed) // 2)
-            history.clear()
-        if limit == 1:
-            break
-    if best.gap > rtol:  # one face per step: bounded by the problem size
-        active_set(seq, best, max_steps=int(np.clip(2e6 // seq.C.size, 20, 200)))
+    handed = best.Z
+    if best.gap > rtol:  # ADMM has converged but where only the smoothness holds the weights
+        local_finish(seq, best, rtol=rtol, max_newton=max_newton)
+    if best.gap > rtol:  # from ADMM's active set: the windows' may be the worse start elsewhere
+        newton(seq, best, rtol=rtol, max_newton=max_newton, start=handed)
     return best.Z, best.gap
 
 
