@@ -92,3 +92,32 @@ def test_parallel_track_matches_the_sequential_one(demo_clip, real_track):
         region = np.array(mediapipe_scheme()["contours"][part])
         seen, seen_1 = (t.visibility[:, region].mean(axis=1) for t in (parallel, real_track))
         assert np.abs(seen - seen_1).max() < 0.2 and ((seen < 0.5) != (seen_1 < 0.5)).mean() < 0.03, part
+
+
+
+def test_workers_not_needed_are_stopped(demo_clip, monkeypatch):
+    """The workers start before the video is probed; a clip too short to split stops them."""
+    from keyshape.capture import _parallel, track_video
+
+    started, start = [], _parallel.start_workers
+    monkeypatch.setattr(_parallel, "start_workers", lambda n: started.extend(start(n)) or list(started))
+    short = track_video(demo_clip, end=20, progress=False, workers=3)
+    assert short.n_frames == 20 and len(started) == 2
+    assert all(process.poll() is not None for process in started)
+
+
+def test_a_worker_imports_mediapipe_without_its_plotting():
+    """MediaPipe's drawing helpers import pyplot (half its import time): deferred in keyshape's
+    processes, and still there, for real, when used."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys; from keyshape.capture.mediapipe import preload; preload(); "
+            "from mediapipe.tasks.python import vision; vision.FaceLandmarker; "
+            "print(type(sys.modules['matplotlib.pyplot']).__name__); "
+            "import matplotlib.pyplot as plt; plt.get_backend(); "
+            "real = sys.modules['matplotlib.pyplot']; print(type(real).__name__, plt.get_backend is real.get_backend)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "MPLBACKEND": "Agg"}).stdout.split()
+    assert out == ["_Deferred", "module", "True"]

@@ -6,7 +6,8 @@ its share: MediaPipe's first frame is a face detection and the following ones tr
 so by the time the share starts the worker's landmarker follows the face as a sequential run
 would. A worker seeks to the keyframe before its first frame (:func:`~keyshape.capture.video.frame_pts`)
 instead of decoding the video up to it. This process tracks the first segment itself while
-the others run in fresh interpreters (:func:`_launch`).
+the others run in fresh interpreters (:func:`start_workers`), started before the video is even
+probed so that their imports overlap this process's.
 
 Stitching keeps the one person followed. Neighbouring segments both tracked the overlap; the
 later one is kept only if it followed the same face there (centres within half a face width
@@ -18,6 +19,7 @@ last face, as the sequential run would have tracked it.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import subprocess
@@ -30,7 +32,7 @@ import numpy as np
 
 from .video import VideoInfo, frame_pts
 
-__all__ = ["default_workers", "plan_segments", "spool_parallel", "Segment"]
+__all__ = ["default_workers", "plan_segments", "spool_parallel", "start_workers", "stop_workers", "Segment"]
 
 OVERLAP_SECONDS = 0.5  # warm-up of each later segment (at least MIN_OVERLAP frames)
 MIN_OVERLAP = 8
@@ -165,22 +167,48 @@ def _progress_bar(path: Path, segments: list[Segment], folders: list[Path], prog
     return close
 
 
-def _launch(job: tuple, folder: Path) -> subprocess.Popen:
-    """A fresh interpreter running ``job``: ``(function, *arguments)``.
+def start_workers(n: int) -> list[subprocess.Popen]:
+    """``n`` fresh interpreters (:func:`_worker`): each imports MediaPipe and PyAV at once (about
+    a second), then waits for its job on stdin (:func:`_send`). End them with :func:`stop_workers`.
 
     Not multiprocessing: its spawn re-runs the parent's ``__main__`` (the ``keyshape`` command
     itself), and fork would copy MediaPipe's and the decoder's threads."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-    process = subprocess.Popen([sys.executable, "-c", "from keyshape.capture._parallel import _worker; _worker()"],
-                               stdin=subprocess.PIPE, env=env)
-    with process.stdin:
-        pickle.dump((job, folder / "result.pickle"), process.stdin)
-    return process
+    return [subprocess.Popen([sys.executable, "-c", "from keyshape.capture._parallel import _worker; _worker()"],
+                             stdin=subprocess.PIPE, env=env) for _ in range(n)]
+
+
+def stop_workers(processes: list[subprocess.Popen]) -> None:
+    """End the workers still running: not needed (too short an input), or after an error or Ctrl-C
+    (do not wait for the others' segments)."""
+    for process in processes:
+        if process.poll() is None:
+            process.terminate()
+            process.wait()
+        if process.stdin is not None and not process.stdin.closed:
+            with contextlib.suppress(OSError):  # the worker is gone: its pipe is broken
+                process.stdin.close()
+
+
+def _send(process: subprocess.Popen, job: tuple, folder: Path) -> None:
+    """Hand ``job`` (``(function, *arguments)``) to a waiting worker; its result goes to ``folder``."""
+    try:
+        with process.stdin:
+            pickle.dump((job, folder / "result.pickle"), process.stdin)
+    except OSError:  # the worker died: _collect says so with its exit code
+        pass
 
 
 def _worker() -> None:
-    """Entry point of a worker process: a job on stdin, its result (or error) pickled to a file."""
-    job, result = pickle.load(sys.stdin.buffer)
+    """Entry point of a worker process: the tracker's imports, then a job on stdin, its result (or
+    error) pickled to a file."""
+    from .mediapipe import preload
+
+    preload()
+    try:
+        job, result = pickle.load(sys.stdin.buffer)
+    except EOFError:  # not needed after all
+        return
     try:
         outcome = ("ok", job[0](*job[1:]))
     except Exception as exc:  # noqa: BLE001 - handed to the parent, which re-raises it
@@ -188,6 +216,9 @@ def _worker() -> None:
     partial = result.with_suffix(".partial")
     partial.write_bytes(pickle.dumps(outcome))
     partial.replace(result)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)  # the files are written and closed; the interpreter's teardown (0.1-0.2 s) would delay the parent
 
 
 def _collect(process: subprocess.Popen, folder: Path, segment: Segment) -> dict:
@@ -201,20 +232,19 @@ def _collect(process: subprocess.Popen, folder: Path, segment: Segment) -> dict:
     return value
 
 
-def _track_all(track_segment, spool_type, path, info, segments, folders, pts, kwargs, progress) -> list:
-    """Every segment: the first in this process, the others in worker processes."""
+def _track_all(track_segment, spool_type, path, info, segments, folders, pts, kwargs, progress,
+               processes: list[subprocess.Popen]) -> list:
+    """Every segment: the first in this process, the others in the waiting worker ``processes``."""
     jobs = [(track_segment, path, info, s.first, s.end, f, pts, kwargs) for s, f in zip(segments, folders)]
-    processes = [_launch(job, f) for job, f in zip(jobs[1:], folders[1:])]
+    for process, job, f in zip(processes, jobs[1:], folders[1:]):
+        _send(process, job, f)
     close = _progress_bar(path, segments, folders, progress)
     try:
         states = [track_segment(*jobs[0][1:])]
         states += [_collect(p, f, s) for p, f, s in zip(processes, folders[1:], segments[1:])]
     finally:
         close()
-        for process in processes:  # after an error or Ctrl-C: do not wait for the others' segments
-            if process.poll() is None:
-                process.terminate()
-                process.wait()
+        stop_workers(processes)
     return [_rebuilt(spool_type, f, state) for f, state in zip(folders, states)]
 
 
@@ -260,16 +290,17 @@ def _join(spool_type, kept: list, folder: Path):
 
 
 def spool_parallel(path: Path, info: VideoInfo, track_segment, spool_type, *, start: int, end: int | None,
-                   progress: bool, folder: Path, workers: int | None = None, **kwargs):
+                   progress: bool, folder: Path, processes: list[subprocess.Popen], **kwargs):
     """Track ``start <= i < end`` in parallel segments into a spool in ``folder``; None when the
     input is too short to split (or its length unknown): track it in one process then.
 
     track_segment : ``keyshape.capture._track._track_segment``, run in every worker
     spool_type : ``keyshape.capture._track._Spool``
-    workers : None for :func:`default_workers`
+    processes : :func:`start_workers`, one per segment after the first (this process tracks that
+        one); the caller stops those not needed (:func:`stop_workers`)
     kwargs : the tracker's settings (``options``, ``fps``, ``face``, ``one_euro``)
     """
-    workers = default_workers() if workers is None else workers
+    workers = len(processes) + 1
     stop = min(end, info.n_frames) if end is not None and info.n_frames else info.n_frames
     overlap = max(MIN_OVERLAP, round(OVERLAP_SECONDS * info.fps))
     segments = plan_segments(start, stop, workers, overlap) if stop > start else []
@@ -281,7 +312,7 @@ def spool_parallel(path: Path, info: VideoInfo, track_segment, spool_type, *, st
     folders = [folder / f"segment{k}" for k in range(len(segments))]
     for f in folders:
         f.mkdir()
-    spools = _track_all(track_segment, spool_type, path, info, segments, folders, pts, kwargs, progress)
+    spools = _track_all(track_segment, spool_type, path, info, segments, folders, pts, kwargs, progress, processes)
     if any(spool.n_frames != s.end - s.first for spool, s in zip(spools, segments)):
         return None  # the video is shorter than it declares: one process finds where it ends
     kept = _stitch(track_segment, spool_type, path, info, segments, spools, pts, kwargs, folder)

@@ -236,17 +236,23 @@ def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a finite number > 0; got {fps!r}")
     path = Path(path)
-    info = probe(path, fps=fps)
-    if info.n_frames and start >= info.n_frames:
-        raise InputError(f"{path}: start frame {start} is past its end (it has {info.n_frames} frames, "
-                         f"0..{info.n_frames - 1})")
-    spool = None
-    if workers != 1:  # segments in parallel (None: too short to split)
-        from ._parallel import spool_parallel
+    spool, processes = None, []
+    if workers != 1:  # segments in parallel; the workers start importing while we probe
+        from ._parallel import default_workers, spool_parallel, start_workers, stop_workers
 
-        spool = spool_parallel(path, info, _track_segment, _Spool, start=start, end=end, progress=progress,
-                               folder=folder, workers=workers, options=options, fps=fps, face=face,
-                               one_euro=one_euro)
+        processes = start_workers((default_workers() if workers is None else workers) - 1)
+    try:
+        info = probe(path, fps=fps)
+        if info.n_frames and start >= info.n_frames:
+            raise InputError(f"{path}: start frame {start} is past its end (it has {info.n_frames} frames, "
+                             f"0..{info.n_frames - 1})")
+        if processes:  # None: too short to split
+            spool = spool_parallel(path, info, _track_segment, _Spool, start=start, end=end, progress=progress,
+                                   folder=folder, processes=processes, options=options, fps=fps, face=face,
+                                   one_euro=one_euro)
+    finally:
+        if processes:
+            stop_workers(processes)
     if spool is None:
         with _Spool(folder) as spool:
             for frame in _frames(path, info, options=options, start=start, end=end, fps=fps, face=face,

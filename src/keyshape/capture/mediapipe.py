@@ -7,8 +7,10 @@ see ``data/NOTICE``), in VIDEO running mode, and converts results to arrays at o
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import sys
+import types
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -18,7 +20,8 @@ import numpy as np
 
 from ..exceptions import MissingDependencyError
 
-__all__ = ["TrackerOptions", "MediaPipeTracker", "Detection", "default_model_path", "BLENDSHAPE_NAMES"]
+__all__ = ["TrackerOptions", "MediaPipeTracker", "Detection", "default_model_path", "BLENDSHAPE_NAMES", "preload",
+           "defer_unused_imports"]
 
 # The 52 scores of the face blendshapes model, in its output order (ARKit names plus "_neutral").
 BLENDSHAPE_NAMES = (
@@ -68,6 +71,43 @@ class Detection:
     matrix: np.ndarray
 
 
+def _quiet_logs() -> None:
+    os.environ.setdefault("GLOG_minloglevel", "2")
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+
+
+# MediaPipe's tasks package imports every task and its drawing helpers at once; tracking uses
+# neither its audio tasks nor matplotlib's pyplot, which are 0.5 s of its 0.8-1.1 s import.
+_UNUSED = ("mediapipe.tasks.python.audio", "matplotlib.pyplot")
+
+
+class _Deferred(types.ModuleType):
+    """Stands in for a module not imported yet: the real one is imported on first attribute use."""
+
+    def __getattr__(self, attribute: str):
+        if sys.modules.get(self.__name__) is self:
+            del sys.modules[self.__name__]
+        return getattr(importlib.import_module(self.__name__), attribute)
+
+
+def defer_unused_imports() -> None:
+    """Let MediaPipe's import skip what tracking never uses (``_UNUSED``), in keyshape's own
+    processes only (the ``keyshape`` command, tracking workers): each of those modules is still
+    imported, for real, on its first use."""
+    for name in _UNUSED:
+        if name not in sys.modules:
+            sys.modules[name] = _Deferred(name)
+
+
+def preload() -> None:
+    """Import MediaPipe's tasks API now: a tracking worker does it while it waits for its job
+    (:mod:`keyshape.capture._parallel`)."""
+    _quiet_logs()
+    defer_unused_imports()
+    with contextlib.suppress(ImportError):  # MediaPipeTracker says what is missing
+        from mediapipe.tasks.python import vision  # noqa: F401
+
+
 class MediaPipeTracker:
     """Context manager around ``FaceLandmarker`` in VIDEO mode.
 
@@ -80,8 +120,7 @@ class MediaPipeTracker:
         self.blendshape_names: tuple[str, ...] = ()
 
     def __enter__(self) -> Self:
-        os.environ.setdefault("GLOG_minloglevel", "2")
-        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+        _quiet_logs()
         try:
             from mediapipe.tasks.python import BaseOptions, vision
         except ImportError:

@@ -42,6 +42,7 @@ Z_HIDDEN = 0.9  # the robust z-score (smoothed) at which visibility is 0.5
 Z_WIDTH = 0.2
 FACING_HIDDEN = 0.15  # a landmark whose normal points this far away from the camera is hidden
 CHUNK = 64  # frames scored at once (memory: CHUNK x n_landmarks x N_EXEMPLARS patches)
+CHUNK_FACING = 2048  # frames whose mesh normals are summed at once (64 kB a frame)
 
 
 def _grid() -> np.ndarray:
@@ -153,6 +154,21 @@ def _outward(tris: np.ndarray, shape: np.ndarray) -> np.ndarray:
     return np.where((out < 0)[:, None], tris[:, ::-1], tris)
 
 
+def _toward(p: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """The z of the unit vertex normals toward the camera: p (n_frames, >= 468, 3) -> (n_frames, 468)."""
+    a, b, c = (p[:, tris[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)  # (n_frames, n_faces, 3), area-weighted
+    # each vertex sums the normals of its triangles: bins frame * 468 + vertex, in the order
+    # (frame, corner, face), so the sums are those of np.add.at corner by corner (and 3x faster)
+    n_frames, n_faces = normals.shape[:2]
+    bins = (np.arange(n_frames)[:, None, None] * 468 + tris.T[None]).ravel()
+    weights = np.broadcast_to(normals[:, None], (n_frames, 3, n_faces, 3)).reshape(-1, 3)
+    vertex = np.stack([np.bincount(bins, weights[:, d], minlength=n_frames * 468) for d in range(3)], axis=-1)
+    vertex = vertex.reshape(n_frames, 468, 3).astype(float, copy=False)  # int64 for no frame
+    vertex /= np.linalg.norm(vertex, axis=-1, keepdims=True) + 1e-12
+    return -vertex[..., 2]
+
+
 def facing(points: np.ndarray) -> np.ndarray:
     """How much each landmark faces the camera: the z of its unit mesh normal, toward the camera.
 
@@ -162,13 +178,7 @@ def facing(points: np.ndarray) -> np.ndarray:
     """
     p = np.asarray(points, dtype=float)
     tris = _outward(face_triangles(), np.nanmedian(p, axis=0))
-    a, b, c = (p[:, tris[:, k]] for k in range(3))
-    normals = np.cross(b - a, c - a)  # (n_frames, n_faces, 3), area-weighted
-    vertex = np.zeros((p.shape[0], 468, 3))
-    for k in range(3):
-        np.add.at(vertex, (slice(None), tris[:, k]), normals)
-    vertex /= np.linalg.norm(vertex, axis=-1, keepdims=True) + 1e-12
-    toward = -vertex[..., 2]
+    toward = np.concatenate([_toward(p[at:at + CHUNK_FACING], tris) for at in range(0, max(len(p), 1), CHUNK_FACING)])
     if p.shape[1] > 468:
         iris = toward.mean(axis=1, keepdims=True).repeat(p.shape[1] - 468, axis=1)  # NaN frames stay NaN
         toward = np.concatenate([toward, iris], axis=1)

@@ -20,6 +20,9 @@ def add_arguments(p) -> None:
 
 def run(args) -> None:
     from ..capture import track_to_file
+    from ..capture.mediapipe import defer_unused_imports
+
+    defer_unused_imports()  # this process tracks (a segment): MediaPipe's import without its plotting
 
     summary = track_to_file(args.video, args.output, progress=progress(args), **capture_kwargs(args))
     n, found = summary["n_frames"], summary["n_faces"]
