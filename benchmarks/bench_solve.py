@@ -9,8 +9,10 @@ The naive script is what one writes first with numpy and scipy (below, :data:`NA
 track and keys, align every frame by Umeyama (one SVD per frame), solve every frame and region
 with ``scipy.optimize.nnls``, write the CSV with the ``csv`` module. ``keyshape solve`` runs with
 its defaults: the smoothed, bounded solve (``--smooth 0.1 --max 1``), which does more than the
-naive per-frame NNLS; ``--smooth 0`` (the per-frame bounded NNLS) is timed too. Each command
-runs as a fresh process (imports included), alternated, best of ``--repeats``.
+naive per-frame NNLS; ``--smooth 0`` (the per-frame bounded NNLS) is timed too, and (where
+``taskset`` exists) the default pinned to one core, as the naive script runs: ``keyshape solve``
+solves the regions of a long take on a thread per core. Each command runs as a fresh process
+(imports included), alternated, best of ``--repeats``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -124,6 +127,9 @@ def main(argv=None) -> None:
                 [sys.executable, "-m", "keyshape", "solve", str(track), str(keys), "-o", str(folder / "w0.csv"),
                  "-q", "--smooth", "0"],
         }
+        if shutil.which("taskset"):
+            commands["keyshape solve, pinned to one core (taskset -c 0)"] = \
+                ["taskset", "-c", "0", *commands["keyshape solve (default: smoothed, bounded)"]]
         best = {name: float("inf") for name in commands}
         for _ in range(args.repeats):
             for name, command in commands.items():
@@ -133,6 +139,8 @@ def main(argv=None) -> None:
         print("| command | seconds | frames/s | speed-up |\n|---|---|---|---|")
         for name, seconds in best.items():
             print(f"| {name} | {seconds:.2f} | {args.frames / seconds:,.0f} | {base / seconds:.1f}x |")
+        with open("/proc/loadavg") as fh:
+            print(f"\nload average at the end: {' '.join(fh.read().split()[:3])}")
         if args.profile:
             subprocess.run([sys.executable, "-m", "cProfile", "-s", "cumtime", "-m", "keyshape", "solve", str(track),
                             str(keys), "-o", str(folder / "w.csv"), "-q"], check=True)

@@ -8,6 +8,8 @@ and its landmarks (``n_frames × n_landmarks × n_dims``) never exist all at onc
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,12 +19,13 @@ from ._solve import _check_smoothness, _check_tol, _upper_bounds, reduce_rows, s
 
 __all__ = ["GramTake"]
 
+_PARALLEL_FRAMES = 20_000  # below this many frames a region solves in well under a second: no threads
+
 
 @dataclass(frozen=True, eq=False)
 class _Region:
     keys: np.ndarray  # (K,) int, the region's keys
-    positions: np.ndarray  # (n_region_landmarks,) int, its landmarks in GramTake.landmarks
-    neutral: np.ndarray  # (n_region_landmarks, n_dims)
+    span: slice  # its landmarks in GramTake.landmarks
     A: np.ndarray  # (m, K), the keys' deltas as columns
     C: np.ndarray  # (n_frames, K), c_t = Aᵀ b_t
     sq: np.ndarray  # (n_frames,), ‖b_t‖²
@@ -39,7 +42,8 @@ class GramTake:
     Attributes
     ----------
     landmarks : (n_needed,) int
-        The landmarks of the regions with keys, sorted: what :meth:`add` is given of each frame.
+        The landmarks of the regions with keys, region after region: what :meth:`add` is given
+        of each frame.
     valid : (n_frames,) bool
         The frames added with a face.
 
@@ -68,24 +72,27 @@ class GramTake:
     def __init__(self, keys: KeyShapes, n_frames: int):
         keyed = [(lm, ks) for r, lm in keys.regions.items() if len(ks := np.asarray(keys.keys_of(r)))]
         self.n_keys, self.n_frames = keys.n_keys, int(n_frames)
-        self.landmarks = np.unique(np.concatenate([lm for lm, _ in keyed])) if keyed else np.zeros(0, int)
-        self._regions = [self._region(keys, np.asarray(lm), ks) for lm, ks in keyed]
+        self.landmarks = np.concatenate([lm for lm, _ in keyed]).astype(np.intp) if keyed else np.zeros(0, np.intp)
+        self._neutral = keys.neutral[self.landmarks]
+        edges = np.cumsum([0, *(len(lm) for lm, _ in keyed)])
+        self._regions = [self._region(keys, np.asarray(lm), ks, slice(a, b)) for (lm, ks), a, b
+                         in zip(keyed, edges[:-1], edges[1:])]
         self.valid = np.zeros(self.n_frames, dtype=bool)
 
-    def _region(self, keys: KeyShapes, landmarks: np.ndarray, ks: np.ndarray) -> _Region:
+    def _region(self, keys: KeyShapes, landmarks: np.ndarray, ks: np.ndarray, span: slice) -> _Region:
         # k: key, p: region landmark, d: dimension; A[(p, d), k] = deltas[k, p, d]
         A = keys.deltas[np.ix_(ks, landmarks)].reshape(len(ks), -1).T
-        return _Region(ks, np.searchsorted(self.landmarks, landmarks), keys.neutral[landmarks], A,
-                       np.empty((self.n_frames, len(ks))), np.empty(self.n_frames))
+        return _Region(ks, span, A, np.empty((self.n_frames, len(ks))), np.empty(self.n_frames))
 
     def add(self, start: int, points: np.ndarray) -> None:
         """Frames ``start ... start + n - 1``: ``points (n, n_needed, n_dims)`` float, aligned onto
         the key set's neutral, the landmarks :attr:`landmarks`; NaN frames have no face."""
         stop = start + len(points)
+        deltas = points - self._neutral  # b_t of every region, side by side
         for region in self._regions:
-            B = (points[:, region.positions] - region.neutral).reshape(len(points), -1)  # b_t, flattened
+            B = deltas[:, region.span].reshape(len(points), -1)  # a view: the region's b_t, flattened
             region.C[start:stop], region.sq[start:stop] = reduce_rows(region.A, B)
-        self.valid[start:stop] = np.isfinite(points).all(axis=(1, 2))
+        self.valid[start:stop] = np.isfinite(points[:, :1, 0]).all(axis=1) if points.shape[1] else True
 
     def solve(self, start: int = 0, stop: int | None = None, *, upper: float | np.ndarray | None = None,
               smoothness: float = 0.0, convex: bool = False, tol: float = 1e-7) -> np.ndarray:
@@ -101,9 +108,22 @@ class GramTake:
         smoothness, tol = _check_smoothness(smoothness), _check_tol(tol)
         valid = self.valid[frames]
         values = np.zeros((len(valid), self.n_keys))
-        for r in self._regions:
-            values[:, r.keys] = solve_reduced(r.A.T @ r.A, r.C[frames], r.sq[frames], upper[r.keys], smoothness,
-                                              bool(convex), tol)
+
+        def region(r: _Region) -> np.ndarray:
+            return solve_reduced(r.A.T @ r.A, r.C[frames], r.sq[frames], upper[r.keys], smoothness, bool(convex), tol)
+
+        for r, solved in zip(self._regions, _each(region, self._regions)):
+            values[:, r.keys] = solved
         if smoothness == 0.0:
             values[~valid] = np.nan
         return values
+
+
+def _each(solve, regions: list[_Region]) -> list[np.ndarray]:
+    """``solve(r)`` for every region, on one thread per core for a long take: the regions are
+    independent problems, and their compiled kernels and BLAS calls release the GIL."""
+    workers = min(len(regions), os.cpu_count() or 1)
+    if workers < 2 or not regions or len(regions[0].C) < _PARALLEL_FRAMES:
+        return [solve(r) for r in regions]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(solve, regions))
