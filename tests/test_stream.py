@@ -132,3 +132,15 @@ def test_cli_solve_streams_the_same_weights(perf, keys, tmp_path):
     assert written.names == whole.names
     np.testing.assert_allclose(written.values, whole.values, atol=2e-6, rtol=0)  # CSV keeps 6 decimals
     np.testing.assert_array_equal(written.frame_index, whole.frame_index)
+
+
+def test_regions_on_threads_give_the_same_weights(perf, keys, monkeypatch):
+    from keyshape.decompose import _gramtake
+
+    aligned = align(perf.track, reference=keys.neutral, stable=perf.stable)[0]
+    take = GramTake(keys, aligned.n_frames)
+    take.add(0, aligned.points[:, take.landmarks])
+    one_by_one = take.solve(smoothness=0.1, upper=1.0)
+    monkeypatch.setattr(_gramtake, "_PARALLEL_FRAMES", 0)
+    monkeypatch.setattr(_gramtake.os, "cpu_count", lambda: 2)
+    np.testing.assert_array_equal(take.solve(smoothness=0.1, upper=1.0), one_by_one)
