@@ -10,10 +10,14 @@ eyeballs, the teeth), largest first.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy import sparse
 
 from .exceptions import InputError
+
+if TYPE_CHECKING:
+    from scipy import sparse
 
 __all__ = ["face_normals", "NormalEstimator", "mesh_components", "snap_to_surface", "weld_vertices", "mirror_map",
            "mirror_field"]
@@ -45,10 +49,7 @@ class NormalEstimator:
 
     def __init__(self, faces: np.ndarray, n_vertices: int):
         self.faces = np.asarray(faces, dtype=np.int64)
-        rows = self.faces.ravel()
-        cols = np.repeat(np.arange(len(self.faces)), 3)
-        self._incidence = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)),
-                                            shape=(n_vertices, len(self.faces)))
+        self._incidence = _vertex_faces(self.faces, n_vertices)
 
     def __call__(self, vertices: np.ndarray) -> np.ndarray:
         """Unit vertex normals ``(n_vertices, 3)``; (0, 0, 1) where undefined."""
@@ -119,6 +120,8 @@ def snap_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
 
 def _vertex_faces(faces: np.ndarray, n_vertices: int) -> sparse.csr_matrix:
     """Vertex -> incident faces, as a sparse ``(n_vertices, n_faces)`` incidence matrix."""
+    from scipy import sparse  # scipy on first use: the verbs that never touch a mesh do not load it
+
     rows = faces.ravel()
     cols = np.repeat(np.arange(len(faces)), 3)
     return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, len(faces)))
@@ -162,6 +165,7 @@ def mesh_components(vertices: np.ndarray, faces: np.ndarray, *, weld: float = 1e
     times the mesh's size) keeps a seam from splitting a face in two. Components are numbered
     by decreasing size.
     """
+    from scipy import sparse
     from scipy.sparse.csgraph import connected_components
 
     welded, n = weld_vertices(vertices, tolerance=weld)

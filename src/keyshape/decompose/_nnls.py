@@ -43,7 +43,6 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
 from ..exceptions import ConvergenceWarning
 from . import _kernels_nnls
@@ -85,7 +84,7 @@ class Gram:
         top = max(float(eig[-1]), 0.0)
         ridge = 0.0 if eig[0] > 10 * _RIDGE * top else max(_RIDGE * top, 1e-150)
         G = G + ridge * np.eye(len(G))
-        H = cho_solve(cho_factor(G, lower=True), np.eye(len(G)))
+        H = np.linalg.inv(G)  # K x K, positive definite (numpy: the solve needs no scipy import)
         cond = (top + ridge) / (eig[0] + ridge)
         return cls(G, 0.5 * (H + H.T), ridge, bool(cond <= 1e8))
 
