@@ -67,9 +67,10 @@ def procrustes(source: np.ndarray, target: np.ndarray, *, scale: bool = True) ->
     rotations = np.full((n_frames, d, d), np.nan)
     translations = np.full((n_frames, d), np.nan)
     scales = np.full(n_frames, np.nan)
-    ok = np.isfinite(src).all(axis=(1, 2)) & np.isfinite(dst).all(axis=(1, 2))
+    shared = n_frames > 1 and src.strides[0] == 0  # one source shape for every frame (align's reference)
+    ok = np.isfinite(src[:1] if shared else src).all(axis=(1, 2)) & np.isfinite(dst).all(axis=(1, 2))
     if ok.any():
-        rot, tra, sca, good = _umeyama(src[ok], dst[ok], scale=scale)
+        rot, tra, sca, good = _umeyama(src[:1] if shared else src[ok], dst[ok], scale=scale)
         rotations[ok], translations[ok], scales[ok] = rot, tra, sca
         ok[ok] = good
         rotations[~ok], translations[~ok], scales[~ok] = np.nan, np.nan, np.nan
@@ -99,28 +100,33 @@ def _check_pair(source, target) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray, *, scale: bool):
-    """Batched Umeyama kernel on finite frames ``(n_frames, n_points, d)``.
+    """Batched Umeyama kernel on finite frames: ``dst (n_frames, n_points, d)`` and ``src`` of the
+    same shape, or ``(1, n_points, d)``: one source for every frame (a reference shape), whose
+    terms are then computed once.
 
     Returns rotations ``(n_frames, d, d)``, translations ``(n_frames, d)``, scales
     ``(n_frames,)`` and a ``(n_frames,)`` bool mask of well-posed frames.
     """
-    d = src.shape[2]
+    n, d = len(dst), dst.shape[2]
     mu_src, mu_dst = src.mean(axis=1), dst.mean(axis=1)
     src_c, dst_c = src - mu_src[:, None], dst - mu_dst[:, None]
     # Eq. (38): cross-covariance Σ_xy = 1/n Σ_p (y_p - μ_y)(x_p - μ_x)ᵀ.  f: frame, p: point
-    cov = np.einsum("fpi,fpj->fij", dst_c, src_c) / src.shape[1]
+    if len(src) == 1 < n:  # Σ[f, i, j] = Σ_p dst_c[f, p, i] src_c[p, j]: one matrix product
+        cov = np.tensordot(dst_c, src_c[0], axes=([1], [0])) / src.shape[1]
+    else:
+        cov = np.einsum("fpi,fpj->fij", dst_c, src_c) / src.shape[1]
     u, sv, vt = np.linalg.svd(cov)
     # Eq. (39)/(43): S = diag(1, …, 1, det(U)·det(V)) forbids reflections.
     sign = np.sign(np.linalg.det(u) * np.linalg.det(vt))
     sign[sign == 0] = 1.0
-    s_diag = np.ones((len(src), d))
+    s_diag = np.ones((n, d))
     s_diag[:, -1] = sign
-    rotations = np.einsum("fij,fj,fjk->fik", u, s_diag, vt)  # Eq. (40): R = U S Vᵀ
-    var_src = (src_c**2).sum(axis=(1, 2)) / src.shape[1]  # Eq. (36): σ²_x
+    rotations = (u * s_diag[:, None, :]) @ vt  # Eq. (40): R = U S Vᵀ
+    var_src = (src_c**2).sum(axis=(1, 2)) / src.shape[1]  # Eq. (36): σ²_x, (n_frames,) or (1,)
     good = (sv[:, max(d - 2, 0)] > 1e-12 * np.maximum(sv[:, 0], 1e-300)) & (var_src > 0)
-    scales = (sv * s_diag).sum(axis=1) / np.where(good, var_src, 1.0) if scale else np.ones(len(src))  # Eq. (42)
+    scales = (sv * s_diag).sum(axis=1) / np.where(good, var_src, 1.0) if scale else np.ones(n)  # Eq. (42)
     # Eq. (41): t = μ_y - s R μ_x.
-    translations = mu_dst - scales[:, None] * np.einsum("fij,fj->fi", rotations, mu_src)
+    translations = mu_dst - scales[:, None] * (rotations @ mu_src[:, :, None])[:, :, 0]
     return rotations, translations, scales, good
 
 
