@@ -96,13 +96,14 @@ def test_patches_read_while_tracking_give_the_two_pass_visibility(demo_clip, rea
 
 
 def test_spooled_patches_read_back_by_slices_and_rows(tmp_path):
-    from keyshape.capture._track import PATCH_SHAPE, _Frame, _Patches, _Spool
+    from keyshape.capture._spool import PATCH_SHAPE, Patches, Spool
+    from keyshape.capture._track import _Frame
 
     rng = np.random.default_rng(0)
     spools, patches = [], []
     for k in range(2):
         (tmp_path / str(k)).mkdir()
-        with _Spool(tmp_path / str(k)) as spool:
+        with Spool(tmp_path / str(k)) as spool:
             for _ in range(5):
                 frame = rng.random(PATCH_SHAPE, dtype=np.float32)
                 spool.append(_Frame(np.zeros((478, 3), np.float32), np.zeros(52, np.float32),
@@ -112,10 +113,21 @@ def test_spooled_patches_read_back_by_slices_and_rows(tmp_path):
             patches.append(np.full(PATCH_SHAPE, np.nan, np.float32))
         spools.append(spool)
     np.testing.assert_array_equal(spools[0].patches()[1:4], np.stack(patches[1:4]))
-    joined = _Patches([(tmp_path / "0", 2, 4), (tmp_path / "1", 1, 5)])  # rows 2.. of one, 1.. of the other
+    joined = Patches([(tmp_path / "0", 2, 4), (tmp_path / "1", 1, 5)])  # rows 2.. of one, 1.. of the other
     expected = np.stack(patches[2:6] + patches[7:12])
     assert joined.shape == (9, *PATCH_SHAPE)
     np.testing.assert_array_equal(joined[:], expected)
     np.testing.assert_array_equal(joined[np.array([0, 3, 4, 8])], expected[[0, 3, 4, 8]])
     np.testing.assert_array_equal(joined[3:7], expected[3:7])
     assert joined[5:5].shape == (0, *PATCH_SHAPE)
+
+
+@pytest.mark.slow
+def test_without_room_for_the_patches_the_video_is_decoded_again(demo_clip, monkeypatch):
+    from keyshape.capture import _track, track_video
+
+    kept = track_video(demo_clip, end=60, progress=False)
+    monkeypatch.setattr(_track, "room_for_patches", lambda folder, n_frames: False)
+    again = track_video(demo_clip, end=60, progress=False)
+    np.testing.assert_array_equal(again.points, kept.points)
+    np.testing.assert_array_equal(again.visibility, kept.visibility)

@@ -274,7 +274,8 @@ def _join(spool_type, kept: list, folder: Path):
     """One spool in ``folder`` holding the kept rows of every segment, in order; the frames'
     patches (143 kB each) stay in the segments' files, which the joined spool reads."""
     with spool_type(folder, patches=False) as joined:
-        joined.pieces = [(spool.folder, row, spool.n_frames - row) for spool, row in kept]
+        if all(spool.keeps_patches for spool, _ in kept):
+            joined.pieces = [(spool.folder, row, spool.n_frames - row) for spool, row in kept]
         for spool, row in kept:
             arrays = spool.arrays()
             for lo in range(row, spool.n_frames, _CHUNK):
@@ -295,10 +296,10 @@ def spool_parallel(path: Path, info: VideoInfo, track_segment, spool_type, *, st
     input is too short to split (or its length unknown): track it in one process then.
 
     track_segment : ``keyshape.capture._track._track_segment``, run in every worker
-    spool_type : ``keyshape.capture._track._Spool``
+    spool_type : ``keyshape.capture._spool.Spool``
     processes : :func:`start_workers`, one per segment after the first (this process tracks that
         one); the caller stops those not needed (:func:`stop_workers`)
-    kwargs : the tracker's settings (``options``, ``fps``, ``face``, ``one_euro``)
+    kwargs : the tracker's settings (``options``, ``fps``, ``face``, ``one_euro``, ``patches``)
     """
     workers = len(processes) + 1
     stop = min(end, info.n_frames) if end is not None and info.n_frames else info.n_frames

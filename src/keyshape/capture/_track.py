@@ -3,7 +3,10 @@
 ``track_video`` decodes with PyAV (``video.py``, in a background thread so decoding overlaps
 inference) and tracks with MediaPipe's FaceLandmarker (``mediapipe.py``). A frame without a
 face becomes a NaN frame; a video with no face at all is an error. ``track_to_file`` does the
-same but streams the results to disk, so memory stays flat however long the video is.
+same but streams the results to disk, so memory stays flat however long the video is. The
+landmarks' visibility comes from colour patches read around them as each frame is tracked
+(spooled to disk, ``_spool.py``: 143 kB a frame, e.g. 12 GB for an hour at 24 frames/s, next to
+the output; the video is decoded again instead when they would take over half the free space).
 """
 
 from __future__ import annotations
@@ -11,26 +14,20 @@ from __future__ import annotations
 import tempfile
 import warnings
 from collections.abc import Iterator
-from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Self
 
 import numpy as np
 
 from ..containers import Track
 from ..exceptions import InputError, InputWarning, NoFaceError
+from ._spool import N_LANDMARKS, N_SCORES, Spool, room_for_patches
 from .mediapipe import Detection, MediaPipeTracker, TrackerOptions, default_model_path
 from .video import VideoInfo, iter_frames, prefetch, probe
-from .visibility import PATCH_GRID, read_patches
+from .visibility import read_patches
 
 __all__ = ["track_video", "track_to_file", "TrackerOptions", "MediaPipeTracker", "default_model_path",
            "probe", "iter_frames", "VideoInfo", "FaceFollower"]
-
-N_LANDMARKS = 478
-N_SCORES = 52
-PATCH_SHAPE = (N_LANDMARKS, PATCH_GRID ** 2, 3)  # a frame's colour patches (:mod:`.visibility`)
-_NAN_PATCHES = np.full(PATCH_SHAPE, np.nan, np.float32)
 
 
 class FaceFollower:
@@ -81,7 +78,7 @@ class _Frame:
     index: int = 0  # the source frame number
     ms: int = 0  # its presentation time in milliseconds
     n_seen: int = 0  # faces the tracker saw in it (anyone's)
-    patches: np.ndarray | None = None  # PATCH_SHAPE float32 around the points (None: no face), for the visibility
+    patches: np.ndarray | None = None  # (478, 25, 3) float32 around the points, for the visibility (None: no face)
 
 
 def _nan_frame(index: int = 0, ms: int = 0, n_seen: int = 0) -> _Frame:
@@ -92,7 +89,7 @@ def _nan_frame(index: int = 0, ms: int = 0, n_seen: int = 0) -> _Frame:
 def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, start: int,
             end: int | None, fps: float | None, face: int, progress: bool,
             one_euro: dict | None = None, follower: FaceFollower | None = None,
-            pts: np.ndarray | None = None) -> Iterator[_Frame]:
+            pts: np.ndarray | None = None, patches: bool = True) -> Iterator[_Frame]:
     from tqdm import tqdm
 
     from .filters import OneEuro
@@ -120,7 +117,7 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
                 points = (smooth(chosen.points) if smooth is not None else chosen.points).astype(np.float32)
                 # the patches are read here, from the frame being tracked: no second decode for them
                 yield _Frame(points, chosen.scores.astype(np.float32), chosen.matrix.astype(np.float32),
-                             index, ms, len(faces), read_patches(rgb, points))
+                             index, ms, len(faces), read_patches(rgb, points) if patches else None)
 
 
 def _check_range(start: int, end: int | None) -> None:
@@ -134,104 +131,16 @@ def _blendshape_names() -> tuple[str, ...]:
     return BLENDSHAPE_NAMES
 
 
-class _Spool:
-    """Append-only float32 files on disk, read back as memory maps (flat memory).
-
-    The frames' colour patches (``patches=True``) go to a file of their own, read back by
-    :meth:`patches`; a spool joined from others (:mod:`._parallel`) reads theirs, its ``pieces``.
-    """
-
-    def __init__(self, folder: Path, *, patches: bool = True):
-        self.folder = folder
-        self.files = {}
-        self.keeps_patches = patches
-        self.pieces: list[tuple[Path, int, int]] = []  # (folder, first row, n_rows) whose patches are ours
-        self._patches = None
-        self._open = ExitStack()
-        self.n_frames = 0
-        self.n_faces = 0
-        self.most_seen = 0  # the most faces seen in one frame
-        self.index: list[int] = []  # source frame numbers (16 bytes a frame with the times)
-        self.ms: list[int] = []
-
-    def append(self, frame: _Frame) -> None:
-        for name, fh in self.files.items():
-            fh.write(np.ascontiguousarray(getattr(frame, name)).tobytes())
-        if self._patches is not None:
-            patches = _NAN_PATCHES if frame.patches is None else frame.patches
-            self._patches.write(np.ascontiguousarray(patches, dtype=np.float32).tobytes())
-        self.n_frames += 1
-        self.n_faces += bool(np.isfinite(frame.points[0, 0]))
-        self.most_seen = max(self.most_seen, frame.n_seen)
-        self.index.append(frame.index)
-        self.ms.append(frame.ms)
-
-    def clock(self) -> dict[str, np.ndarray]:
-        """``frame_index`` (n_frames,) int and ``time`` (n_frames,) seconds."""
-        return {"frame_index": np.array(self.index, dtype=np.int64),
-                "time": np.array(self.ms, dtype=np.float64) / 1000.0}
-
-    def __enter__(self) -> Self:
-        with ExitStack() as stack:  # a failed open closes the ones before it
-            self.files = {name: stack.enter_context(open(self.folder / f"{name}.f32", "wb"))
-                          for name in ("points", "scores", "matrix")}
-            if self.keeps_patches:
-                self._patches = stack.enter_context(open(self.folder / "patches.f32", "wb"))
-            self._open = stack.pop_all()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._open.close()
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """Memory maps of what was written (call after the ``with`` block)."""
-        shapes = {"points": (N_LANDMARKS, 3), "scores": (N_SCORES,), "matrix": (4, 4)}
-        return {name: np.memmap(self.folder / f"{name}.f32", dtype=np.float32, mode="r",
-                                shape=(self.n_frames, *shape)) for name, shape in shapes.items()}
-
-    def patches(self) -> _Patches:
-        """The frames' patches, ``(n_frames, *PATCH_SHAPE)``, read from disk a slice at a time."""
-        return _Patches(self.pieces or [(self.folder, 0, self.n_frames)])
-
-
-class _Patches:
-    """Rows of patch files read as one ``(n_rows, *PATCH_SHAPE)`` float32 array, a slice or an
-    index array at a time (``patches[i:j]``, ``patches[rows]``). Read, not memory-mapped: a long
-    take's patches (143 kB a frame) would otherwise all end up in the resident set.
-
-    pieces : (folder, first row, n_rows) of each file, in order
-    """
-
-    def __init__(self, pieces: list[tuple[Path, int, int]]):
-        self.pieces = [piece for piece in pieces if piece[2] > 0]
-        self.starts = np.cumsum([0] + [n for _, _, n in self.pieces])
-        self.shape = (int(self.starts[-1]), *PATCH_SHAPE)
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, rows) -> np.ndarray:
-        rows = np.arange(self.shape[0])[rows]
-        out = np.empty((len(rows), *PATCH_SHAPE), np.float32)
-        if not len(rows):
-            return out
-        piece = np.searchsorted(self.starts, rows, side="right") - 1
-        # runs of consecutive rows in one file, each read at once
-        cuts = np.flatnonzero((np.diff(rows) != 1) | (np.diff(piece) != 0)) + 1
-        row_bytes = out[0].nbytes
-        with ExitStack() as stack:
-            files = {}
-            for lo, hi in zip([0, *cuts], [*cuts, len(rows)]):
-                k = int(piece[lo])
-                if k not in files:
-                    files[k] = stack.enter_context(open(self.pieces[k][0] / "patches.f32", "rb"))
-                files[k].seek((self.pieces[k][1] + int(rows[lo] - self.starts[k])) * row_bytes)
-                files[k].readinto(memoryview(out[lo:hi]).cast("B"))
-        return out
+def _probe(path: Path, fps: float | None, start: int) -> VideoInfo:
+    info = probe(path, fps=fps)
+    if info.n_frames and start >= info.n_frames:
+        raise InputError(f"{path}: start frame {start} is past its end (it has {info.n_frames} frames, "
+                         f"0..{info.n_frames - 1})")
+    return info
 
 
 def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
-           one_euro: dict | None = None, workers: int | None = 1) -> tuple[_Spool, VideoInfo]:
+           one_euro: dict | None = None, workers: int | None = 1) -> tuple[Spool, VideoInfo]:
     _check_range(start, end)
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a finite number > 0; got {fps!r}")
@@ -242,21 +151,18 @@ def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
 
         processes = start_workers((default_workers() if workers is None else workers) - 1)
     try:
-        info = probe(path, fps=fps)
-        if info.n_frames and start >= info.n_frames:
-            raise InputError(f"{path}: start frame {start} is past its end (it has {info.n_frames} frames, "
-                             f"0..{info.n_frames - 1})")
+        info = _probe(path, fps, start)
+        settings = {"options": options, "fps": fps, "face": face, "one_euro": one_euro,
+                    "patches": room_for_patches(folder, _n_wanted(info, start, end))}
         if processes:  # None: too short to split
-            spool = spool_parallel(path, info, _track_segment, _Spool, start=start, end=end, progress=progress,
-                                   folder=folder, processes=processes, options=options, fps=fps, face=face,
-                                   one_euro=one_euro)
+            spool = spool_parallel(path, info, _track_segment, Spool, start=start, end=end, progress=progress,
+                                   folder=folder, processes=processes, **settings)
     finally:
         if processes:
             stop_workers(processes)
     if spool is None:
-        with _Spool(folder) as spool:
-            for frame in _frames(path, info, options=options, start=start, end=end, fps=fps, face=face,
-                                 progress=progress, one_euro=one_euro):
+        with Spool(folder, patches=settings["patches"]) as spool:
+            for frame in _frames(path, info, start=start, end=end, progress=progress, **settings):
                 spool.append(frame)
     if spool.n_frames == 0:
         raise InputError(f"{path}: no frame from frame {start} on (the video ends before it)")
@@ -273,15 +179,20 @@ def _track_segment(path: Path, info: VideoInfo, first: int, end: int, folder: Pa
     Returns the spool's counters and clock."""
     follower = FaceFollower(kwargs["face"])
     vars(follower).update(seed or {})
-    with _Spool(folder) as spool:
+    with Spool(folder, patches=kwargs["patches"]) as spool:
         for frame in _frames(path, info, start=first, end=end, progress=False, follower=follower, pts=pts,
                              **kwargs):
             spool.append(frame)
     return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "most_seen": spool.most_seen,
-            "index": spool.index, "ms": spool.ms}
+            "index": spool.index, "ms": spool.ms, "keeps_patches": spool.keeps_patches}
 
 
-def _no_face_message(path: Path, spool: _Spool, face: int) -> str:
+def _n_wanted(info: VideoInfo, start: int, end: int | None) -> int:
+    """Frames ``start <= i < end`` by the container's count (0: unknown)."""
+    return max(0, (min(end, info.n_frames) if end is not None and info.n_frames else info.n_frames) - start)
+
+
+def _no_face_message(path: Path, spool: Spool, face: int) -> str:
     if face > 0 and spool.most_seen > 0:
         ordinal = {1: "2nd", 2: "3rd"}.get(face, f"{face + 1}th")
         return (f"{path}: no {ordinal} face to follow (face={face}): at most {spool.most_seen} "
@@ -300,13 +211,16 @@ def _warn_if_truncated(path: Path, info: VideoInfo, decoded: int, end: int | Non
                       InputWarning, stacklevel=3)
 
 
-def _visibility(spool: _Spool, points: np.ndarray) -> np.ndarray:
+def _visibility(spool: Spool, points: np.ndarray, path, start: int, end: int | None,
+                fps: float | None) -> np.ndarray:
     """(n_frames, n_landmarks) visibility of the tracked landmarks (:mod:`.visibility`), from the
-    patches read while tracking: the same numbers as :func:`~.visibility.estimate_visibility`'s
-    two more decodes of the video."""
-    from .visibility import sample_frames, visibility_from_patches
+    patches read while tracking: the numbers :func:`~.visibility.estimate_visibility` gets from
+    two more decodes of the video, which it does when the disk had no room for the patches."""
+    from .visibility import estimate_visibility, sample_frames, visibility_from_patches
 
     patches = spool.patches()
+    if patches is None:
+        return estimate_visibility(path, points, start=start, end=end, fps=fps)
     return visibility_from_patches(patches[sample_frames(points)], patches, points)
 
 
@@ -346,7 +260,7 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
         clock = spool.clock()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
                       _blendshape_names(), arrays["matrix"], clock["frame_index"], clock["time"],
-                      _visibility(spool, arrays["points"]))
+                      _visibility(spool, arrays["points"], path, start, end, fps))
         del arrays
     return track
 
@@ -370,7 +284,8 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],
                            blendshape_names=_blendshape_names(), head_matrix=arrays["matrix"],
-                           visibility=_visibility(spool, arrays["points"]), **spool.clock())
+                           visibility=_visibility(spool, arrays["points"], path, start, end, fps),
+                           **spool.clock())
         del arrays
     return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "fps": info.fps,
             "image_size": (info.width, info.height)}
