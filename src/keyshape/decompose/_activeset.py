@@ -236,8 +236,10 @@ def local_finish(seq: Sequence, best: Best, *, rtol: float, max_newton: int) -> 
 
     Primal–dual active-set steps (:func:`exchange`) on all windows at once; a window whose
     active set no longer changes sits at its exact minimiser and leaves, so later steps cost
-    only the windows still moving. Windows whose exchanges cycle are finished by
-    :func:`active_set`.
+    only the windows still moving. When the exchanges stop shrinking they are damped, down to
+    the single largest violation per step (cheap on a few small windows, and it breaks the
+    two-cycles seen on these problems); windows still moving after ``max_newton`` steps are
+    finished by :func:`active_set`.
     """
     mask = window_frames(seq, best.Z)
     if not mask.any():
@@ -255,7 +257,7 @@ def local_finish(seq: Sequence, best: Best, *, rtol: float, max_newton: int) -> 
         state[moving], sums[moving], changed = _move(state[moving], sums[moving], X[moving], size, rows, limit)
         moving &= np.isin(run, run[moving][wrong])  # a window without violations is at its minimiser
         history.append(changed)
-        if not moving.any() or limit == 1:
+        if not moving.any():
             break
         if len(history) > 3 and changed >= history[-4]:  # no progress: damp the exchanges
             limit = max(1, (limit or changed) // 2)

@@ -30,7 +30,11 @@ are fitted with the frames on both sides. The solver has three parts:
    fixed variables cost nothing); active ``Σw = 1`` rows are added by the method of
    multipliers on the same factorisation. Each step lands on the exact minimiser of its face;
    should the exchanges cycle (degenerate problems) they are damped, and a monotone primal
-   active-set method (Nocedal & Wright, Alg. 16.3) finishes.
+   active-set method (Nocedal & Wright, Alg. 16.3) finishes. Where ADMM has converged but
+   around long gaps, these steps run first on windows around them only, with the other frames
+   fixed (:func:`keyshape.decompose._activeset.local_finish`): a few hundred frames per gap
+   instead of the take, one exact small solve per gap; the steps on the whole take remain
+   the fallback, from ADMM's own active set.
 3. A *duality-gap certificate* stops every part: for multipliers ``y`` the Lagrangian dual
    ``q(y) = const − (c − y)ᵀP⁻¹(c − y) − 2σ_C(y)`` (one solve with the pentadiagonal factors of
    ``P``) bounds ``F*`` from below, so ``F(Z) − q(y) ≤ rtol·F(Z)`` proves that ``Z`` is within
