@@ -223,7 +223,7 @@ def test_window_is_the_restricted_qp():
     rng = np.random.default_rng(8)
     Z = _sequence.project(rng.uniform(0, 0.5, (50, 3)), seq.upper, True)
     mask = np.zeros(50, bool)
-    mask[[0, 1, 2]] = mask[10:23] = mask[25:30] = mask[48:] = True  # runs two or more frames apart
+    mask[[0, 1, 2, 33]] = mask[10:23] = mask[25:30] = mask[48:] = True  # runs two or more frames apart
     sub = _activeset.restrict(seq, Z, mask)
     np.testing.assert_array_equal(sub.rows, np.flatnonzero(mask))
     P = dense_hessian(seq)

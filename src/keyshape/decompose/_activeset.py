@@ -339,8 +339,9 @@ def restrict(seq: Sequence, Z: np.ndarray, mask: np.ndarray) -> Window:
     outside = np.ascontiguousarray(np.where(mask[:, None], 0.0, Z))
     pull = np.zeros_like(outside)  # μ (LᵀL Z_out): the fixed frames' pull through the smoothness
     _kernels.add_smoothness(pull, outside, np.zeros(len(Z)), float(seq.mu), d0, d1, d2)
-    nxt = np.append(rows[1:], -1) == rows + 1  # the next row is the next frame
-    nxt2 = np.append(rows[2:], [-1, -1]) == rows + 2
+    n = len(rows)
+    nxt = np.concatenate([rows[1:], [-1]])[:n] == rows + 1  # the next row is the next frame
+    nxt2 = np.concatenate([rows[2:], [-1, -1]])[:n] == rows + 2
     diagonals = (d0[rows], np.where(nxt, d1[rows], 0.0), np.where(nxt2, d2[rows], 0.0))
     C = np.ascontiguousarray(seq.C[rows] - pull[rows])
     sub = Window(seq.G, C, seq.delta[rows], seq.mu, seq.upper, seq.convex, 0.0, diagonals, rows)
