@@ -12,7 +12,8 @@ its defaults: the smoothed, bounded solve (``--smooth 0.1 --max 1``), which does
 naive per-frame NNLS; ``--smooth 0`` (the per-frame bounded NNLS) is timed too, and (where
 ``taskset`` exists) the default pinned to one core, as the naive script runs: ``keyshape solve``
 solves the regions of a long take on a thread per core. Each command runs as a fresh process
-(imports included), alternated, best of ``--repeats``.
+(imports included), alternated, best of ``--repeats`` (wall time, and CPU time, which a shared
+machine's load disturbs less).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import resource
 import shutil
 import subprocess
 import sys
@@ -96,10 +98,14 @@ def prepare(folder: Path, n_frames: int) -> tuple[Path, Path]:
     return folder / "long.npz", keys
 
 
-def wall(command: list[str]) -> float:
+def wall(command: list[str]) -> tuple[float, float]:
+    """(wall seconds, CPU seconds: user + system of the process and its children)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - start
+    seconds = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return seconds, after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
 
 def main(argv=None) -> None:
@@ -131,14 +137,18 @@ def main(argv=None) -> None:
             commands["keyshape solve, pinned to one core (taskset -c 0)"] = \
                 ["taskset", "-c", "0", *commands["keyshape solve (default: smoothed, bounded)"]]
         best = {name: float("inf") for name in commands}
+        cpu = dict(best)
         for _ in range(args.repeats):
             for name, command in commands.items():
-                best[name] = min(best[name], wall(command))
-        base = best[next(iter(commands))]
+                seconds, used = wall(command)
+                best[name], cpu[name] = min(best[name], seconds), min(cpu[name], used)
+        base, base_cpu = best[next(iter(commands))], cpu[next(iter(commands))]
         print(f"\n{args.frames:,} frames, best of {args.repeats}\n")
-        print("| command | seconds | frames/s | speed-up |\n|---|---|---|---|")
+        print("| command | seconds | frames/s | speed-up | CPU seconds (user + sys) | CPU speed-up |\n"
+              "|---|---|---|---|---|---|")
         for name, seconds in best.items():
-            print(f"| {name} | {seconds:.2f} | {args.frames / seconds:,.0f} | {base / seconds:.1f}x |")
+            print(f"| {name} | {seconds:.2f} | {args.frames / seconds:,.0f} | {base / seconds:.1f}x | "
+                  f"{cpu[name]:.2f} | {base_cpu / cpu[name]:.1f}x |")
         with open("/proc/loadavg") as fh:
             print(f"\nload average at the end: {' '.join(fh.read().split()[:3])}")
         if args.profile:
