@@ -144,3 +144,10 @@ def test_regions_on_threads_give_the_same_weights(perf, keys, monkeypatch):
     monkeypatch.setattr(_gramtake, "_PARALLEL_FRAMES", 0)
     monkeypatch.setattr(_gramtake.os, "cpu_count", lambda: 2)
     np.testing.assert_array_equal(take.solve(smoothness=0.1, upper=1.0), one_by_one)
+
+
+def test_a_track_of_other_landmarks_is_refused_before_it_is_read(keys, tmp_path):
+    seen = np.full((30, 10), 0.5)  # visibility of fewer landmarks than the keys index
+    path = save_track(Track(np.zeros((30, 10, 3)), 30.0, visibility=seen), tmp_path / "other.npz")
+    with pytest.raises(InputError, match="the track has 10 landmarks in 3D but the key set was made from 40 in 3D"):
+        solve_track_file(path, keys)

@@ -50,14 +50,14 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
     Options as :func:`solve_take`'s.
     """
     source = open_track(path)
+    if source is not None and (source.n_landmarks != keys.n_landmarks or source.n_dims != keys.n_dims):
+        raise InputError(f"the track has {source.n_landmarks} landmarks in {source.n_dims}D but the key set was "
+                         f"made from {keys.n_landmarks} in {keys.n_dims}D")
     take = GramTake(keys, 0 if source is None else source.n_frames)
     if source is None or not _all_seen(source, take.landmarks):
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
-    if source.n_landmarks != keys.n_landmarks or source.n_dims != keys.n_dims:
-        raise InputError(f"the track has {source.n_landmarks} landmarks in {source.n_dims}D but the key set was "
-                         f"made from {keys.n_landmarks} in {keys.n_dims}D")
     face = _reduce(source, keys, take, chunk)
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
