@@ -42,7 +42,7 @@ Z_HIDDEN = 0.9  # the robust z-score (smoothed) at which visibility is 0.5
 Z_WIDTH = 0.2
 FACING_HIDDEN = 0.15  # a landmark whose normal points this far away from the camera is hidden
 CHUNK = 64  # frames scored at once (memory: CHUNK x n_landmarks x N_EXEMPLARS patches)
-CHUNK_FACING = 2048  # frames whose mesh normals are summed at once (64 kB a frame)
+CHUNK_FACING = 256  # frames whose mesh normals are summed at once (about 150 kB a frame of temporaries)
 
 
 def _grid() -> np.ndarray:
