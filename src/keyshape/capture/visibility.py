@@ -43,6 +43,8 @@ Z_WIDTH = 0.2
 FACING_HIDDEN = 0.15  # a landmark whose normal points this far away from the camera is hidden
 CHUNK = 64  # frames scored at once (memory: CHUNK x n_landmarks x N_EXEMPLARS patches)
 CHUNK_FACING = 256  # frames whose mesh normals are summed at once (about 150 kB a frame of temporaries)
+CHUNK_SCORE = 4096  # frames turned from z-scores into visibility at once
+MEDIAN_COLUMNS = 32  # landmarks whose median over the take is taken at once
 
 
 def _grid() -> np.ndarray:
@@ -135,6 +137,13 @@ class _Reference:
         return (_distances(patches, self.exemplars) - self.median) / self.mad
 
 
+def _median_shape(points: np.ndarray, dtype=None) -> np.ndarray:
+    """``np.nanmedian(points, axis=0)`` (in ``dtype``), a few landmarks at a time: the same numbers
+    without a copy of the whole take. points : (n_frames, n_landmarks, d) -> (n_landmarks, d)"""
+    return np.concatenate([np.nanmedian(np.asarray(points[:, j:j + MEDIAN_COLUMNS], dtype=dtype), axis=0)
+                           for j in range(0, points.shape[1], MEDIAN_COLUMNS)])
+
+
 def _neighbours(shape: np.ndarray) -> np.ndarray:
     """(n_landmarks, N_NEIGHBOURS + 1) each landmark and its nearest ones in ``shape`` (n_landmarks, 2)."""
     d = np.linalg.norm(shape[:, None, :2] - shape[None, :, :2], axis=-1)
@@ -186,11 +195,15 @@ def facing(points: np.ndarray) -> np.ndarray:
     -> (n_frames, n_landmarks) in [-1, 1]: 1 faces the camera, < 0 is turned away. Iris points
     (468..477) take their eye's mean.
     """
-    p = np.asarray(points, dtype=float)
-    tris = _outward(face_triangles(), np.nanmedian(p, axis=0))
-    toward = np.concatenate([_toward(p[at:at + CHUNK_FACING], tris) for at in range(0, max(len(p), 1), CHUNK_FACING)])
-    if p.shape[1] > 468:
-        iris = toward.mean(axis=1, keepdims=True).repeat(p.shape[1] - 468, axis=1)  # NaN frames stay NaN
+    return _facing_rows(points, _outward(face_triangles(), _median_shape(points, float)))
+
+
+def _facing_rows(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """:func:`facing` of ``points`` (n_frames, n_landmarks, 3) with the take's ``tris`` (:func:`_outward`)."""
+    toward = np.concatenate([_toward(np.asarray(points[at:at + CHUNK_FACING], dtype=float), tris)
+                             for at in range(0, max(len(points), 1), CHUNK_FACING)])
+    if points.shape[1] > 468:
+        iris = toward.mean(axis=1, keepdims=True).repeat(points.shape[1] - 468, axis=1)  # NaN frames stay NaN
         toward = np.concatenate([toward, iris], axis=1)
     return toward
 
@@ -229,14 +242,29 @@ def visibility_from_patches(patches_sample: np.ndarray, patches: np.ndarray, poi
 
 
 def _visibility(z: np.ndarray, points: np.ndarray, neighbours: np.ndarray | None = None) -> np.ndarray:
-    """z (n_frames, n_landmarks) appearance z-scores and the track -> visibility in [0, 1]."""
+    """z (n_frames, n_landmarks) appearance z-scores and the track -> visibility in [0, 1],
+    ``CHUNK_SCORE`` frames at a time (memory does not grow with the take beyond z and the result)."""
     if neighbours is None:
-        neighbours = _neighbours(np.nanmedian(points, axis=0))
-    seen = 1.0 / (1.0 + np.exp(np.clip((_smooth(z, neighbours) - Z_HIDDEN) / Z_WIDTH, -50, 50)))
+        neighbours = _neighbours(_median_shape(points))
+    tris = None
     if points.shape[2] == 3 and points.shape[1] in (468, 478):
-        seen = seen * np.clip((facing(points) + FACING_HIDDEN) / FACING_HIDDEN, 0.0, 1.0)
-    valid = np.isfinite(points).all(axis=(1, 2))
-    seen[~valid] = 1.0
+        tris = _outward(face_triangles(), _median_shape(points, float))
+    seen = np.empty(z.shape, np.float32)
+    for at in range(0, len(z), CHUNK_SCORE):
+        seen[at:at + CHUNK_SCORE] = _seen(z, points, neighbours, tris, at, min(at + CHUNK_SCORE, len(z)))
+    return seen
+
+
+def _seen(z: np.ndarray, points: np.ndarray, neighbours: np.ndarray, tris: np.ndarray | None,
+          at: int, stop: int) -> np.ndarray:
+    """The visibility of frames ``at <= i < stop`` (the smoothing reads one frame either side)."""
+    lo, hi = max(at - 1, 0), min(stop + 1, len(z))
+    smoothed = _smooth(z[lo:hi], neighbours)[at - lo:stop - lo]
+    seen = 1.0 / (1.0 + np.exp(np.clip((smoothed - Z_HIDDEN) / Z_WIDTH, -50, 50)))
+    rows = points[at:stop]
+    if tris is not None:
+        seen = seen * np.clip((_facing_rows(rows, tris) + FACING_HIDDEN) / FACING_HIDDEN, 0.0, 1.0)
+    seen[~np.isfinite(rows).all(axis=(1, 2))] = 1.0
     return seen.astype(np.float32)
 
 
