@@ -247,7 +247,9 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
     Returns
     -------
     Track with points (n_frames, 478, 3) in pixels (z on the x scale), NaN where no face;
-    blendshapes (n_frames, 52) ARKit-style scores; head_matrix (n_frames, 4, 4).
+    blendshapes (n_frames, 52) ARKit-style scores; head_matrix (n_frames, 4, 4); visibility
+    (n_frames, 478) in [0, 1] (:mod:`~keyshape.capture.visibility`), from colour patches read as
+    each frame is tracked and spooled to a temporary folder meanwhile (143 kB a frame).
 
     Raises
     ------
