@@ -20,7 +20,11 @@
      solved key weights (what a perfect proposal could reach);
    * ``oracle (signed + constant)``: the same with signed gains and a constant term.
 
-5. **A second head.** The same video drives a caricature of ICT (:func:`caricature`: eyes 30 %
+5. **The transfer route** (``--transfer``): the same head with its shapes dropped, so
+   ``--auto-targets`` carries each key's landmark motion onto the mesh (expression transfer, with
+   and without the per-feature proportion rescaling); the character posed by the solved key
+   weights through those targets, scored the same way.
+6. **A second head.** The same video drives a caricature of ICT (:func:`caricature`: eyes 30 %
    larger, mouth 25 % wider, nose 20 % smaller, chin shorter; every target warped with it), so the
    character's proportions differ from the performer's; the truth is the same weights on it.
 
@@ -157,17 +161,9 @@ def render_video(rig, weights: np.ndarray, rotations: np.ndarray, path: Path, fp
     return path
 
 
-def vertex_error(rig, truth: np.ndarray, estimate: np.ndarray, vertex_sets: dict, *, chunk: int = 40) -> dict:
+def vertex_error(rig, truth: np.ndarray, estimate: np.ndarray, vertex_sets: dict) -> dict:
     """Mean vertex error / mean displacement from neutral, %, per vertex set (rig weights in, both)."""
-    sums = {name: np.zeros(2) for name in vertex_sets}
-    for start in range(0, len(truth), chunk):
-        frames = slice(start, start + chunk)
-        posed_truth, posed = rig.pose(truth[frames]), rig.pose(np.clip(estimate[frames], 0, 1))
-        error = np.linalg.norm(posed - posed_truth, axis=2)
-        moved = np.linalg.norm(posed_truth - rig.vertices, axis=2)
-        for name, ids in vertex_sets.items():
-            sums[name] += [error[:, ids].sum(), moved[:, ids].sum()]
-    return {name: 100 * s[0] / s[1] for name, s in sums.items()}
+    return posed_error(rig, rig, np.clip(estimate, 0, 1), truth, vertex_sets)
 
 
 def oracles(key_weights: np.ndarray, truth: np.ndarray) -> dict:
@@ -219,7 +215,7 @@ class Loop:
 
 
 def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = None,
-                  second_head: bool = False) -> dict[str, Loop]:
+                  second_head: bool = False, transfer: bool = False) -> dict[str, Loop]:
     """Run the loop of the module docstring, writing the video and the runs under ``out``.
 
     Returns ``{"ICT": Loop}`` and, with ``second_head``, ``"caricature"`` too.
@@ -235,12 +231,13 @@ def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = Non
     colours = ict_colours(rig.vertices, landmarks)
     video = render_video(rig, truth, rotations, out / "ict.mp4", source.fps, colours)
     character = as_it_looks(rig, colours, out / "ict.glb")
-    loops = {"ICT": _run_and_score(video, character, rig, landmarks, truth, out / "run", start)}
+    loops = {"ICT": _run_and_score(video, character, rig, landmarks, truth, out / "run", start, transfer)}
     if second_head:
         start = time.perf_counter()
         other = caricature(rig, landmarks)
         character = as_it_looks(other, colours, out / "caricature.glb")
-        loops["caricature"] = _run_and_score(video, character, other, landmarks, truth, out / "run_caricature", start)
+        loops["caricature"] = _run_and_score(video, character, other, landmarks, truth, out / "run_caricature", start,
+                                             transfer)
     return loops
 
 
@@ -254,7 +251,8 @@ def as_it_looks(rig, colours: np.ndarray, path: Path) -> Path:
     return write_glb(path, shown, Weights(np.zeros((0, rig.n_targets)), rig.names, 30.0), colours=colours)
 
 
-def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndarray, run: Path, start: float) -> Loop:
+def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndarray, run: Path, start: float,
+                   transfer: bool = False) -> Loop:
     """``keyshape run VIDEO --rig RIG --auto-targets``, its result and the other routes scored on ``rig``."""
     from keyshape.app import RunOptions, run_take
     from keyshape.io import load_track, load_weights_csv
@@ -271,7 +269,41 @@ def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndar
     estimates.update(oracles(key_weights.values, truth))
     sets = vertex_sets(rig, landmarks)
     scores = {route: vertex_error(rig, truth, np.nan_to_num(e), sets) for route, e in estimates.items()}
+    if transfer:
+        scores.update(transfer_routes(rig, run, key_weights.values, truth, sets))
     return Loop(scores, summary.detection_rate, summary.keys.n_keys, time.perf_counter() - start)
+
+
+def transfer_routes(rig, run: Path, key_weights: np.ndarray, truth: np.ndarray, sets: dict) -> dict:
+    """The transfer route's scores: ``rig`` without its shapes, one target per key of the ``run``
+    proposed by expression transfer (on the run's correspondence), posed by the run's key weights;
+    with and without the per-feature proportion rescaling."""
+    from keyshape.containers import Rig
+    from keyshape.io import load_keys
+    from keyshape.targets import propose_targets
+    from keyshape.targets._propose import resolve_correspondence
+
+    keys = load_keys(run / "keys.json")
+    plain = Rig(rig.vertices, rendered_faces(rig.faces), np.zeros((0, rig.n_vertices, 3)), ())
+    corr = resolve_correspondence(run / "correspondence.json", plain, keys.n_landmarks)
+    out = {}
+    for route, rescale in (("transfer (shapes dropped)", True), ("transfer, no proportion rescaling", False)):
+        proposed = propose_targets(keys, plain, correspondence=corr, rescale=rescale)
+        out[route] = posed_error(rig, proposed, np.nan_to_num(key_weights), truth, sets)
+    return out
+
+
+def posed_error(rig, proposed, weights: np.ndarray, truth: np.ndarray, sets: dict, *, chunk: int = 40) -> dict:
+    """:func:`vertex_error` of another rig on the same mesh (``proposed`` posed by ``weights``)."""
+    sums = {name: np.zeros(2) for name in sets}
+    for start in range(0, len(truth), chunk):
+        frames = slice(start, start + chunk)
+        posed_truth, posed = rig.pose(truth[frames]), proposed.pose(weights[frames])
+        error = np.linalg.norm(posed - posed_truth, axis=2)
+        moved = np.linalg.norm(posed_truth - rig.vertices, axis=2)
+        for name, ids in sets.items():
+            sums[name] += [error[:, ids].sum(), moved[:, ids].sum()]
+    return {name: 100 * s[0] / s[1] for name, s in sums.items()}
 
 
 def vertex_sets(rig, landmarks: np.ndarray) -> dict:
@@ -302,12 +334,15 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=None, help="folder for the video and the run (default: temporary)")
     parser.add_argument("--json", type=Path, default=None, help="also write the scores here")
     parser.add_argument("--no-second-head", action="store_true", help="only ICT itself as the character")
+    parser.add_argument("--transfer", action="store_true",
+                        help="also score the transfer route (each head with its shapes dropped)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as scratch:
         out = args.out or Path(scratch)
         out.mkdir(parents=True, exist_ok=True)
         folder = extract_ict(args.ict, out / "ict")
-        loops = rendered_loop(folder, out, performance=args.performance, second_head=not args.no_second_head)
+        loops = rendered_loop(folder, out, performance=args.performance, second_head=not args.no_second_head,
+                              transfer=args.transfer)
     print("| character | route | face area | upper | lower |")
     print("|---|---|---|---|---|")
     for character, loop in loops.items():
