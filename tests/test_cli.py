@@ -263,3 +263,27 @@ def test_run_auto_targets_on_a_robot_asks_for_a_correspondence(demo_clip, tmp_pa
     result = _cli("run", demo_clip, "--end", "24", "--rig", robot, "--auto-targets", "--no-preview",
                   "-o", out)
     _assert_clean_failure(result, out, "correspondence")
+
+
+def test_retarget_onto_the_demos_own_character_turns_its_eyes(demo_out, tmp_path, capsys):
+    """The demo's animation.glb carries gaze targets no key drives: retarget lets them through
+    without --allow-extra, turns them by the irises with --track, and says so without it."""
+    from keyshape.cli import main
+    from keyshape.targets import GAZE_NAMES
+
+    weights = load_weights_csv(demo_out / "weights.csv")
+    rig = str(demo_out / "animation.glb")
+    out = tmp_path / "again.glb"
+    assert main(["retarget", str(demo_out / "weights.csv"), "--rig", rig, "--track", str(demo_out / "track.npz"),
+                 "-o", str(out)]) == 0
+    again, first = read_glb_animation(out), read_glb_animation(demo_out / "animation.glb")
+    gaze = [again.names.index(n) for n in GAZE_NAMES]
+    np.testing.assert_allclose(again.weights[:, gaze], first.weights[:, [first.names.index(n) for n in GAZE_NAMES]],
+                               atol=1e-5)  # the same eyes as `demo` wrote
+    np.testing.assert_allclose(again.weights[:, :weights.n_channels], np.nan_to_num(weights.values), atol=1e-6)
+    np.testing.assert_allclose(again.rotations, first.rotations, atol=1e-5)  # the head turns as in `demo` too
+    capsys.readouterr()
+    still = tmp_path / "still.glb"
+    assert main(["retarget", str(demo_out / "weights.csv"), "--rig", rig, "-o", str(still)]) == 0
+    assert "gaze targets no key drives stay at rest" in capsys.readouterr().out
+    assert np.abs(read_glb_animation(still).weights[:, gaze]).max() == 0

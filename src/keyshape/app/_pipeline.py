@@ -357,9 +357,11 @@ def head_poses(track: Track) -> Poses:
 
 
 def head_and_gaze(track: Track) -> tuple[Poses, Gaze | None]:
-    """Head poses and (MediaPipe tracks) per-eye gaze, relative to the take's own neutral frame."""
+    """Head poses and (MediaPipe tracks) per-eye gaze, relative to the take's own neutral frame,
+    chosen as :func:`discover_keys` chooses it (so ``retarget --track`` turns the head and eyes as
+    ``run`` does)."""
     stable = stable_points(track.n_landmarks)
-    neutral = choose_neutral(track, stable=stable)
+    neutral = _neutral_frame(track, None, stable, resolve_regions(DEFAULT_REGIONS, track.n_landmarks))
     aligned, poses = align(track, reference=track.points[neutral], stable=stable)
     gaze = estimate_gaze(aligned.points, neutral_frame=neutral) if track.n_landmarks == 478 else None
     return poses, gaze

@@ -193,7 +193,7 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     if options.rig is None:  # the stylised head: its colours, and its eyes turned by the gaze targets
         anim, colours = default_character_extras(anim, solved.gaze)
     elif options.mapping is None and not options.auto_targets:  # a rig's own ARKit gaze targets: the irises
-        anim = _gaze_targets(anim, solved.gaze, taken=keys.names)
+        anim = drive_gaze_targets(anim, solved.gaze, taken=keys.names)
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes, colours=colours)
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
@@ -209,7 +209,7 @@ def _neutral_file(options, keys: KeyShapes) -> Path | None:
     return neutral if isinstance(neutral, Path) and keys.neutral_take == neutral.name else None
 
 
-def _gaze_targets(anim, gaze, taken=()):
+def drive_gaze_targets(anim, gaze, taken=()):
     """``anim`` with its ARKit gaze targets (``eyeLookInLeft`` ...) but those named in ``taken``
     (driven by keys) turned by the irises' gaze, at the built-in head's 30° per unit weight
     (:func:`keyshape.targets.gaze_weights`); frame numbers and times kept."""
@@ -231,7 +231,7 @@ def default_character_extras(anim, gaze):
     """The built-in head's animation with its gaze targets driven by ``gaze`` (if any), and its colours."""
     from ..targets import stylised_head
 
-    return _gaze_targets(anim, gaze), stylised_head().colours
+    return drive_gaze_targets(anim, gaze), stylised_head().colours
 
 
 def _check_formats(formats) -> None:

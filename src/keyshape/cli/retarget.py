@@ -43,7 +43,8 @@ def add_arguments(p) -> None:
                         "has eye nodes, and in Live Link Face CSV)")
     p.add_argument("--allow-extra", action="store_true",
                    help="without --map: let rig targets that no key drives stay at 0 (default: an error "
-                        "listing them)")
+                        "listing them; ARKit gaze targets, eyeLook*, are always let through and, with "
+                        "--track, turned by the irises)")
     p.add_argument("--format", choices=("glb", "usd", "csv", "livelink", "fbx", "blend"), default=None,
                    help="output format for every -o (default: from each suffix; livelink must be asked for)")
     add_rig_options(p)
@@ -73,6 +74,11 @@ def run(args) -> None:
         rig, made = complete_mirrors(rig, mirror_sources(weights.names))
     anim = retarget(weights, _mapping(args, weights, rig))
     poses, gaze = _poses(args, weights)
+    gaze_only = _free_gaze_targets(args, weights, rig)
+    if gaze_only and gaze is not None:  # e.g. a take's own animation.glb: its eyes follow the irises
+        from ..app import drive_gaze_targets
+
+        anim = drive_gaze_targets(anim, gaze, taken=weights.names)
     eyes = gaze.rotations() if gaze is not None else None
     source = args.rig if rig is not None and args.rig.is_file() and args.rig.suffix.lower() != ".obj" else None
     with tempfile.TemporaryDirectory(prefix="keyshape-retarget-") as scratch:
@@ -87,6 +93,9 @@ def run(args) -> None:
                 print(_summary(out, chosen, anim, Format))
     if made and not args.quiet:
         print(f"mirrored targets made from their sources: {', '.join(made)}")
+    if gaze_only and gaze is None and not args.quiet:
+        print(f"gaze targets no key drives stay at rest ({', '.join(gaze_only)}): give --track to turn "
+              "them with the irises")
 
 
 def _rig(args, formats, Format):
@@ -104,7 +113,19 @@ def _mapping(args, weights, rig):
 
     if args.map is not None:
         return Mapping.from_file(args.map, targets=None if rig is None else rig.names)
-    return Mapping.by_name(weights.names, rig.names, allow_extra=args.allow_extra)
+    allow = args.allow_extra or bool(_free_gaze_targets(args, weights, rig))
+    return Mapping.by_name(weights.names, rig.names, allow_extra=allow)
+
+
+def _free_gaze_targets(args, weights, rig) -> list[str]:
+    """Without --map: the rig's ARKit gaze targets (``eyeLookInLeft`` ...) that no key drives, when
+    every target no key drives is one (the gaze comes from the irises, not from key shapes)."""
+    if args.map is not None or rig is None:
+        return []
+    from ..targets import GAZE_NAMES
+
+    extra = [t for t in rig.names if t not in weights.names]
+    return extra if extra and set(extra) <= set(GAZE_NAMES) else []
 
 
 def _poses(args, weights):
