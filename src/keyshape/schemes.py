@@ -30,6 +30,7 @@ import numpy as np
 from .exceptions import InputError
 
 __all__ = ["REGION_SCHEMES", "resolve_regions", "stable_points", "face_triangles", "mediapipe_scheme", "eye_corners",
+           "part_contours",
            "mirror_pairs",
            "IMAGE_TO_GLTF", "as_xyz", "points_to_gltf", "rotations_to_gltf", "head_rotations", "hold_valid"]
 
@@ -135,6 +136,18 @@ def stable_points(n_landmarks: int) -> np.ndarray:
     if n_landmarks == 68:
         return np.array(_IBUG68["stable"])
     return np.arange(n_landmarks)
+
+
+def part_contours(n_landmarks: int) -> dict[str, np.ndarray] | None:
+    """The named parts' landmark ids (``left_eye``, ``lips``, ...) of MediaPipe's 468/478 or iBUG's
+    68 landmarks; None for other schemes."""
+    if n_landmarks in (468, 478):
+        contours = mediapipe_scheme()["contours"]
+    elif n_landmarks == 68:
+        contours = _IBUG68["contours"]
+    else:
+        return None
+    return {name: np.unique(np.asarray(ids, dtype=np.int64)) for name, ids in contours.items()}
 
 
 def eye_corners(n_landmarks: int) -> tuple[int, int] | None:

@@ -221,7 +221,8 @@ def _visibility(spool: Spool, points: np.ndarray, path, start: int, end: int | N
     patches = spool.patches()
     if patches is None:
         return estimate_visibility(path, points, start=start, end=end, fps=fps)
-    return visibility_from_patches(patches[sample_frames(points)], patches, points)
+    sample = sample_frames(points)
+    return visibility_from_patches(patches[sample], patches, points, sample=sample)
 
 
 def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,

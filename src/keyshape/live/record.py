@@ -119,7 +119,7 @@ class Recorder:
                             shape=(self.n_frames, self.keys.n_landmarks, PATCH_GRID ** 2, 3))
         frames = np.flatnonzero(read)
         sample = frames[np.linspace(0, len(frames) - 1, min(N_SAMPLE, len(frames))).astype(int)]
-        return visibility_from_patches(_Unit(patches)[sample], _Unit(patches), points, unread=~read)
+        return visibility_from_patches(_Unit(patches)[sample], _Unit(patches), points, unread=~read, sample=sample)
 
     def _complete_frames(self) -> int:
         """The frames every spool file holds whole (SIGTERM may land between one file's write and
