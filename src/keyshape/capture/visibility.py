@@ -14,8 +14,9 @@ in [0, 1] (1 = seen):
   nearest of several exemplars, not one reference frame, keeps an open mouth from counting as
   hidden. Eyes shut in laughter can be a third of a take, too many to be typical: the eyes and
   brows also have exemplars from the typical half of the frames with closed and with open eyes
-  (the tracked lids tell which), and count by the nearer set. The z-scores are averaged over each landmark's nearest neighbours on the face
-  (occluders are larger than a landmark) and over three frames.
+  (the tracked lids tell which), and count by the nearer set. The z-scores are averaged over each
+  landmark's nearest neighbours on the face (occluders are larger than a landmark) and over three
+  frames.
 * **Facing.** For a 3-D track, the normal of the face mesh at the landmark (from the tracked
   points) tells whether its side of the face is turned away from the camera: back-facing
   landmarks are hidden by the head itself.
