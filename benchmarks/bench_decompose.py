@@ -164,7 +164,10 @@ def solve_case(A, data, *, smoothness, convex, tol, weight=None):
     solve = lambda b: solve_spacetime(A, b, smoothness=smoothness, upper=1.0, convex=convex, tol=tol)  # noqa: E731
     if weight is None:
         return solve(data)
-    return solve_weighted(A, data, weight, solve, smoothness=smoothness, upper=np.ones(A.shape[1]), convex=convex)
+    from keyshape.decompose._solve import _mu
+
+    return solve_weighted(A, data, weight, solve, smoothness=smoothness, upper=np.ones(A.shape[1]), convex=convex,
+                          mu=_mu(A.T @ A, smoothness))
 
 
 def bench_spacetime(sizes, clarabel_frames: int, m: int, k: int = 12, repeats: int = 2):

@@ -232,13 +232,19 @@ def _solve_seen(A, B, track, landmarks, upper, smoothness, convex, tol):
         return _solve_region(A, B, upper, smoothness, convex, tol)  # all seen: the unweighted fast path
     weight = coordinate_weights(track.visibility[:, landmarks], track.n_dims)
     return solve_weighted(A, B, weight, lambda b: _solve_region(A, b, upper, smoothness, convex, tol),
-                          smoothness=smoothness, upper=upper, convex=convex)
+                          smoothness=smoothness, upper=upper, convex=convex, mu=_mu(A.T @ A, smoothness))
 
 
 def _solve_region(A, B, upper, smoothness, convex, tol=1e-7):
     """(n_frames, K): per-frame NNLS, or the spacetime solve when ``smoothness > 0``."""
     C, sq = reduce_rows(A, B)
     return solve_reduced(A.T @ A, C, sq, upper, smoothness, convex, tol)
+
+
+def _mu(G: np.ndarray, smoothness: float) -> float:
+    """The smoothness term's weight ``μ``: ``smoothness`` times the mean of ``diag G`` (so it does
+    not depend on the landmarks' units or number)."""
+    return smoothness * float(np.trace(G)) / max(G.shape[0], 1)
 
 
 def reduce_rows(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -254,7 +260,7 @@ def solve_reduced(G, C, sq, upper, smoothness, convex, tol=1e-7):
         return nnls_gram(G, C, upper, convex)
     valid = np.isfinite(sq)
     C = np.where(valid[:, None], C, 0.0)
-    mu = smoothness * np.trace(G) / max(G.shape[0], 1)
+    mu = _mu(G, smoothness)
     if mu == 0.0:  # all keys are zero: nothing to smooth
         return np.where(valid[:, None], nnls_gram(G, C, upper, convex), np.nan)
     const = float(sq[valid].sum())
