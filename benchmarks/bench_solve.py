@@ -78,7 +78,9 @@ with open(out_path, "w", newline="") as fh:
 
 
 def prepare(folder: Path, n_frames: int) -> tuple[Path, Path]:
-    """The clip's track tiled to ``n_frames`` (with noise) and its key set."""
+    """The clip's track tiled to ``n_frames`` (with noise) and its key set; beside it
+    ``long_seen.npz``, the same with the clip's visibility tiled too (as ``keyshape track``
+    writes a real take: the solve then weights each landmark by it)."""
     import numpy as np
 
     from keyshape.io import load_track
@@ -95,6 +97,10 @@ def prepare(folder: Path, n_frames: int) -> tuple[Path, Path]:
     points = (points + rng.normal(0.0, 0.3, points.shape)).astype(np.float32)  # as `keyshape track` writes
     write_track_arrays(folder / "long.npz", points=points, fps=track.fps, image_size=track.image_size,
                        frame_index=np.arange(n_frames), time=np.arange(n_frames) / track.fps)
+    if track.visibility is not None:
+        write_track_arrays(folder / "long_seen.npz", points=points, fps=track.fps, image_size=track.image_size,
+                           frame_index=np.arange(n_frames), time=np.arange(n_frames) / track.fps,
+                           visibility=np.tile(track.visibility, (reps, 1))[:n_frames])
     return folder / "long.npz", keys
 
 
@@ -133,6 +139,10 @@ def main(argv=None) -> None:
                 [sys.executable, "-m", "keyshape", "solve", str(track), str(keys), "-o", str(folder / "w0.csv"),
                  "-q", "--smooth", "0"],
         }
+        if (folder / "long_seen.npz").exists():
+            commands["keyshape solve on the same track with its visibility (a real take)"] = \
+                [sys.executable, "-m", "keyshape", "solve", str(folder / "long_seen.npz"), str(keys), "-o",
+                 str(folder / "ws.csv"), "-q"]
         if shutil.which("taskset"):
             commands["keyshape solve, pinned to one core (taskset -c 0)"] = \
                 ["taskset", "-c", "0", *commands["keyshape solve (default: smoothed, bounded)"]]

@@ -111,8 +111,8 @@ def test_exact_weighted_smoothed_solve_is_the_optimum(seed):
     A, B, weight, upper = _weighted_problem(seed)
     mu = _mu(A.T @ A, 0.1)
     start = _solve_region(A, B, upper, 0.1, False)
-    X = _active_set_solve(A, B, weight, start, mu, upper)
-    assert X is not None and (X >= 0).all() and (X <= 1).all()
+    X, exact = _active_set_solve(A, B, weight, start, mu, upper)
+    assert exact and (X >= 0).all() and (X <= 1).all()
     # KKT: the gradient is zero on free variables, >= 0 at 0, <= 0 at 1
     eps = 1e-7
     grad = np.zeros_like(X)
@@ -154,4 +154,21 @@ def test_exact_weighted_smoothed_solve_is_the_optimum(seed):
     via = solve_weighted(A, B, weight, lambda b: _solve_region(A, b, upper, 0.1, False), smoothness=0.1,
                          upper=upper, convex=False, mu=mu)
     np.testing.assert_allclose(via, X, atol=1e-8)  # from no start (every variable free): the same optimum
-    np.testing.assert_allclose(_active_set_solve(A, B, weight, None, mu, upper), X, atol=1e-8)
+    np.testing.assert_allclose(_active_set_solve(A, B, weight, None, mu, upper)[0], X, atol=1e-8)
+
+
+def test_cycling_exchanges_hand_over_to_majorise_minimise(monkeypatch):
+    """Should the active-set exchanges cycle, majorise-minimise finishes from where they stopped."""
+    import keyshape.decompose._weighted as weighted
+    from keyshape.decompose._solve import _mu, _solve_region
+
+    A, B, weight, upper = _weighted_problem(4)
+    mu = _mu(A.T @ A, 0.1)
+    solve = lambda b: _solve_region(A, b, upper, 0.1, False)  # noqa: E731
+    exact = weighted.solve_weighted(A, B, weight, solve, smoothness=0.1, upper=upper, convex=False, mu=mu)
+    monkeypatch.setattr(weighted, "STALL", 0)  # give up after the first step on the whole take
+    X, settled = weighted._active_set_solve(A, B, weight, None, mu, upper)
+    assert not settled and (X >= 0).all() and (X <= 1).all()
+    finished = weighted.solve_weighted(A, B, weight, solve, smoothness=0.1, upper=upper, convex=False, mu=mu)
+    np.testing.assert_allclose(finished, exact, atol=1e-3)  # majorise-minimise stops at steps below 1e-5
+    assert _objective(A, B, weight, finished, mu) <= _objective(A, B, weight, X, mu) + 1e-12

@@ -21,7 +21,8 @@ region is carried by the smoothness term from the frames around it, as a gap is.
   is one banded Cholesky factorisation of its free variables (:func:`_active_set_solve`); the
   steps stop when the active set repeats, which is the optimum. On the embedded clip, where
   MediaPipe's landmarks read a few percent hidden in almost every frame, that is 3–6 steps.
-* Otherwise, or should those steps not settle, majorise-minimise (Kiers 1997; Srebro & Jaakkola
+* Otherwise, or should those steps cycle (they need not converge on every QP; then from where
+  they stopped), majorise-minimise (Kiers 1997; Srebro & Jaakkola
   2003): as ``V_t ⪯ I``, ``‖V_t^{1/2}(A w − b_t)‖² ≤ ‖A w − \\tilde b_t‖² + const`` with the
   hidden part filled in from the current fit, ``\\tilde b_t = v_t ⊙ b_t + (1 − v_t) ⊙ A w_t^{(k)}``;
   each step is the unweighted solve on ``\\tilde B`` (the shared Gram matrix, the compiled
@@ -82,10 +83,14 @@ def solve_weighted(A: np.ndarray, B: np.ndarray, weight: np.ndarray, solve: Call
     gone = weight.mean(axis=1) < HIDDEN
     B[gone] = np.nan
     partial = np.flatnonzero(np.isfinite(B).all(axis=1) & (weight < 1.0).any(axis=1))
+    start = None
     if partial.size and smoothness > 0.0 and mu is not None and mu > 0.0 and not convex:
-        exact = _active_set_solve(A, B, weight, None, mu, np.asarray(upper, dtype=float))
-        if exact is not None:
-            return exact
+        found = _active_set_solve(A, B, weight, None, mu, np.asarray(upper, dtype=float))
+        if found is not None and found[1]:
+            return found[0]
+        start = None if found is None else found[0]  # cycling: majorise-minimise finishes from here
+    if start is not None:
+        return _majorise(A, B, weight[partial], partial, start, solve)
     W = solve(B)
     if not partial.size:
         return W
@@ -103,7 +108,9 @@ MAX_EXCHANGES = 50  # active-set steps of the exact smoothed solve before majori
 def _active_set_solve(A, B, weight, W, mu, upper):
     """The exact minimiser ``(n_frames, K)`` of the weighted smoothed QP by primal–dual active-set
     steps from the active set of ``W`` (None: every variable free, so the first step is the
-    unconstrained smooth fit), or None if they do not settle.
+    unconstrained smooth fit): ``(X, True)``; ``(X, False)`` with a feasible ``X`` near it when
+    the exchanges cycle (primal–dual active-set steps need not converge on every QP), None when
+    a face is singular.
 
     Variables are ordered frame-major, ``x[t·K + k] = w_t[k]``; the Hessian ``P`` (half of the
     objective's) is ``G_t = Aᵀ V_t A`` on the diagonal blocks (zero in gaps) plus ``μ LᵀL ⊗ I``,
@@ -147,7 +154,9 @@ def _active_set_solve(A, B, weight, W, mu, upper):
     def update(X, lo=0, hi=n):
         """The semismooth Newton states of frames lo..hi-1."""
         y = X[lo:hi] - (hessian(X, lo, hi) - c[lo:hi]) / diag[lo:hi]
-        return np.where(y <= 0.0, -1, np.where(y >= top[lo:hi], 1, 0))
+        # within _SLACK of a bound counts as on it: a weight at 1e-13 with a multiplier of -1e-13
+        # would otherwise flip between free and bound for ever (degenerate variables)
+        return np.where(y <= _SLACK, -1, np.where(y >= top[lo:hi] - _SLACK, 1, 0))
 
     def solve_range(X, state, lo, hi):
         """Frames lo..hi-1 of X (in place) on the exact minimiser of their face, the others held."""
@@ -156,34 +165,38 @@ def _active_set_solve(A, B, weight, W, mu, upper):
         X[lo:hi] = fixed
         free = (sub == 0).ravel()
         rhs = (c[lo:hi] - hessian(X, lo, hi)).ravel()
-        face = band[:, lo * K : hi * K].copy()
+        face = buffer[:, : (hi - lo) * K]
+        np.copyto(face, band[:, lo * K : hi * K])
         for i in range(1, 2 * K + 1):  # no coupling past the range's end
             face[i, face.shape[1] - i :] = 0.0
         face[:, ~free] = 0.0  # fixed columns ...
         for i in range(1, 2 * K + 1):  # ... and rows: P[j + i, j] with j + i fixed
             face[i, : free.size - i][~free[i:]] = 0.0
         face[0, ~free] = 1.0
-        factor = cholesky_banded(face, lower=True)
-        x = cho_solve_banded((factor, True), np.where(free, rhs, 0.0))
+        factor = cholesky_banded(face, lower=True, overwrite_ab=True, check_finite=False)
+        x = cho_solve_banded((factor, True), np.where(free, rhs, 0.0), overwrite_b=True, check_finite=False)
         X[lo:hi] = np.where(free.reshape(-1, K), x.reshape(-1, K), fixed)
         return X
 
     from scipy.linalg import cho_solve_banded, cholesky_banded
 
+    buffer = np.empty_like(band)  # the face systems, one at a time
     X = np.zeros((n, K)) if W is None else np.clip(W, 0.0, top)
     state = np.zeros((n, K), np.int64) if W is None else np.where(X <= 0.0, -1, np.where(X >= top, 1, 0))
-    few = max(8, n * K // 1000)
+    few = max(8, n * K // FEW)
+    least, since = np.inf, 0
     try:
         for _ in range(MAX_EXCHANGES):
-            X = solve_range(X, state, 0, n)
+            X = solve_range(X, state, 0, n)  # a face of the whole take: exact everywhere
             new = update(X)
             changed = new != state
             state = new
             if not changed.any():
-                return X
-            if changed.sum() > few:
-                continue
-            for _ in range(MAX_EXCHANGES):  # few changes: windows around them, then the whole take again
+                return X, True
+            least, since = (changed.sum(), 0) if changed.sum() < least else (least, since + 1)
+            if since >= STALL:  # the exchanges cycle: hand over to majorise-minimise from here
+                break
+            for _ in range(WINDOW_ROUNDS if changed.sum() <= few else 0):  # few changes: windows around them
                 for lo, hi in _windows(np.flatnonzero(changed.any(axis=1)), n):
                     for _ in range(MAX_EXCHANGES):
                         X = solve_range(X, state, lo, hi)
@@ -194,16 +207,19 @@ def _active_set_solve(A, B, weight, W, mu, upper):
                             break
                 new = update(X)
                 changed = new != state
-                if not changed.any():
-                    return solve_range(X, state, 0, n)  # one face of the whole take: exact everywhere
                 state = new
-            return None
+                if not changed.any() or changed.sum() > few:
+                    break
     except LinAlgError:
         return None
-    return None
+    return np.clip(X, 0.0, top), False
 
 
 WINDOW = 40  # frames on either side of a change that a window step re-solves
+FEW = 100  # windows once at most 1 in FEW variables changes in a step
+STALL = 5  # steps on the whole take without fewer changes than before: the exchanges cycle
+_SLACK = 1e-10  # weights (of order 1) this close to a bound are on it
+WINDOW_ROUNDS = 8  # sweeps of windows between two steps on the whole take
 
 
 def _windows(frames: np.ndarray, n: int):
