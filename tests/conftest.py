@@ -98,6 +98,29 @@ def real_track(demo_clip):
     return track_video(demo_clip, progress=False)
 
 
+def dotted_take(path: Path, n_frames: int = 14):
+    """A small synthetic take: a video at ``path`` of 10 white dots (a 'face', 5 upper and 5
+    lower landmarks) drifting over ``n_frames`` frames, its points ``(n_frames, 10, 2)``, the
+    regions, and the deltas ``(3, 10, 2)`` of keys at frames 3, 6 (upper) and 9 (lower).
+
+    Returns ``(points, video, regions, deltas)``.
+    """
+    rng = np.random.default_rng(0)
+    base = np.array([[30, 20], [40, 18], [50, 18], [60, 20], [45, 28],
+                     [32, 50], [40, 56], [50, 56], [58, 50], [45, 62]], dtype=float)
+    points = base[None] + rng.normal(scale=1.5, size=(n_frames, 10, 2)) + np.arange(n_frames)[:, None, None]
+    frames = np.zeros((n_frames, 80, 112, 3), np.uint8)
+    for f in range(n_frames):
+        for x, y in points[f].astype(int):
+            frames[f, y - 2:y + 3, x - 2:x + 3] = 255
+    video = write_video(path, frames, fps=25)
+    regions = {"upper": np.arange(5), "lower": np.arange(5, 10)}
+    deltas = np.zeros((3, 10, 2))
+    for k, (frame, region) in enumerate([(3, "upper"), (6, "upper"), (9, "lower")]):
+        deltas[k, regions[region]] = points[frame, regions[region]] - points[0, regions[region]]
+    return points, video, regions, deltas
+
+
 def write_video(path: Path, frames: np.ndarray, fps: int = 25) -> Path:
     """Encode ``frames`` (n, height, width, 3) uint8 as an H.264 MP4 with PyAV."""
     import av

@@ -15,7 +15,7 @@ from keyshape.containers import KeyShapes, Track
 from keyshape.exceptions import InputError
 from keyshape.report import separate_neutral
 
-from conftest import write_video
+from conftest import dotted_take, write_video
 
 N_FRAMES, RED = 14, (250, 20, 20)
 ROBOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "robot-expressive" / "RobotExpressive.glb"
@@ -25,19 +25,7 @@ ROBOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "robot-express
 def take(tmp_path):
     """A 14-frame video of white dots, its track and three keys whose neutral is frame 20 of
     ``rest.mp4`` (a clip longer than the take: frame 20 of the take does not exist)."""
-    rng = np.random.default_rng(0)
-    base = np.array([[30, 20], [40, 18], [50, 18], [60, 20], [45, 28],
-                     [32, 50], [40, 56], [50, 56], [58, 50], [45, 62]], dtype=float)
-    points = base[None] + rng.normal(scale=1.5, size=(N_FRAMES, 10, 2)) + np.arange(N_FRAMES)[:, None, None]
-    frames = np.zeros((N_FRAMES, 80, 112, 3), np.uint8)
-    for f in range(N_FRAMES):
-        for x, y in points[f].astype(int):
-            frames[f, y - 2:y + 3, x - 2:x + 3] = 255
-    video = write_video(tmp_path / "take.mp4", frames, fps=25)
-    regions = {"upper": np.arange(5), "lower": np.arange(5, 10)}
-    deltas = np.zeros((3, 10, 2))
-    for k, (frame, region) in enumerate([(3, "upper"), (6, "upper"), (9, "lower")]):
-        deltas[k, regions[region]] = points[frame, regions[region]] - points[0, regions[region]]
+    points, video, regions, deltas = dotted_take(tmp_path / "take.mp4", N_FRAMES)
     keys = KeyShapes(points[0], deltas, ("upper_00", "upper_01", "lower_00"), [3, 6, 9],
                      ("upper", "upper", "lower"), regions, ("take.mp4",) * 3, 20, "rest.mp4")
     return keys, Track(points, fps=25.0), video

@@ -17,7 +17,7 @@ from keyshape.io.rig import load_rig
 from keyshape.io.track import save_track
 from keyshape.io.weights_csv import save_weights_csv
 
-from conftest import write_video
+from conftest import dotted_take, write_video
 from gltf_validator import validate
 
 ROBOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "robot-expressive" / "RobotExpressive.glb"
@@ -32,20 +32,8 @@ def _clean(path):
 @pytest.fixture
 def take(tmp_path):
     """A 14-frame video with a moving 'face' of 10 landmarks, its track and three key shapes."""
-    rng = np.random.default_rng(0)
-    base = np.array([[30, 20], [40, 18], [50, 18], [60, 20], [45, 28],
-                     [32, 50], [40, 56], [50, 56], [58, 50], [45, 62]], dtype=float)
-    points = base[None] + rng.normal(scale=1.5, size=(N_FRAMES, 10, 2)) + np.arange(N_FRAMES)[:, None, None]
-    frames = np.zeros((N_FRAMES, 80, 112, 3), np.uint8)
-    for f in range(N_FRAMES):
-        for x, y in points[f].astype(int):
-            frames[f, y - 2:y + 3, x - 2:x + 3] = 255
-    video = write_video(tmp_path / "take.mp4", frames, fps=25)
+    points, video, regions, deltas = dotted_take(tmp_path / "take.mp4", N_FRAMES)
     track = Track(points, fps=25.0)
-    regions = {"upper": np.arange(5), "lower": np.arange(5, 10)}
-    deltas = np.zeros((3, 10, 2))
-    for k, (frame, region) in enumerate([(3, "upper"), (6, "upper"), (9, "lower")]):
-        deltas[k, regions[region]] = points[frame, regions[region]] - points[0, regions[region]]
     keys = KeyShapes(points[0], deltas, ("upper_00", "upper_01", "lower_00"), [3, 6, 9],
                      ("upper", "upper", "lower"), regions, neutral_frame=0)
     return keys, track, video

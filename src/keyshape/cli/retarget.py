@@ -72,9 +72,9 @@ def run(args) -> None:
         from ..targets import complete_mirrors, mirror_sources
 
         rig, made = complete_mirrors(rig, mirror_sources(weights.names))
-    anim = retarget(weights, _mapping(args, weights, rig))
-    poses, gaze = _poses(args, weights)
     gaze_only = _free_gaze_targets(args, weights, rig)
+    anim = retarget(weights, _mapping(args, weights, rig, allow_gaze=bool(gaze_only)))
+    poses, gaze = _poses(args, weights)
     if gaze_only and gaze is not None:  # e.g. a take's own animation.glb: its eyes follow the irises
         from ..app import drive_gaze_targets
 
@@ -108,13 +108,12 @@ def _rig(args, formats, Format):
     return None
 
 
-def _mapping(args, weights, rig):
+def _mapping(args, weights, rig, *, allow_gaze: bool):
     from ..targets import Mapping
 
     if args.map is not None:
         return Mapping.from_file(args.map, targets=None if rig is None else rig.names)
-    allow = args.allow_extra or bool(_free_gaze_targets(args, weights, rig))
-    return Mapping.by_name(weights.names, rig.names, allow_extra=allow)
+    return Mapping.by_name(weights.names, rig.names, allow_extra=args.allow_extra or allow_gaze)
 
 
 def _free_gaze_targets(args, weights, rig) -> list[str]:

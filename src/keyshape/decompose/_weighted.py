@@ -49,6 +49,7 @@ import numpy as np
 
 from ..exceptions import ConvergenceWarning
 from ._nnls import nnls_gram
+from ._sequence import second_difference_gram
 
 __all__ = ["HIDDEN", "coordinate_weights", "solve_weighted"]
 
@@ -120,7 +121,7 @@ def _active_set_solve(A, B, weight, W, mu, upper):
     only a few variables change per step, the steps run on windows of ``WINDOW`` frames around
     them, the rest of the take held, and the whole take is checked again after each.
     """
-    from scipy.linalg import LinAlgError
+    from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 
     n, K = B.shape[0], A.shape[1]
     seen = np.isfinite(B).all(axis=1)
@@ -129,7 +130,7 @@ def _active_set_solve(A, B, weight, W, mu, upper):
     v = np.where(seen[:, None], weight, 0.0)
     G = np.einsum("mk,tm,ml->tkl", A, v, A)  # (n, K, K)
     c = (v * np.where(seen[:, None], B, 0.0)) @ A  # (n, K)
-    d0, d1, d2 = _second_difference_diagonals(n)
+    d0, d1, d2 = second_difference_gram(n)
     band = np.zeros((2 * K + 1, n * K))  # lower form: band[i, j] = P[j + i, j]
     for i in range(K):  # within a frame: P[tK + k + i, tK + k] = G_t[k + i, k]
         rows = np.zeros((n, K))
@@ -177,8 +178,6 @@ def _active_set_solve(A, B, weight, W, mu, upper):
         x = cho_solve_banded((factor, True), np.where(free, rhs, 0.0), overwrite_b=True, check_finite=False)
         X[lo:hi] = np.where(free.reshape(-1, K), x.reshape(-1, K), fixed)
         return X
-
-    from scipy.linalg import cho_solve_banded, cholesky_banded
 
     buffer = np.empty_like(band)  # the face systems, one at a time
     X = np.zeros((n, K)) if W is None else np.clip(W, 0.0, top)
@@ -232,18 +231,6 @@ def _windows(frames: np.ndarray, n: int):
         else:
             out.append((lo, hi))
     return out
-
-
-def _second_difference_diagonals(n: int):
-    """Diagonals ``(d0 (n,), d1 (n − 1,), d2 (n − 2,))`` of ``LᵀL``, ``L`` the (n − 2) × n second difference."""
-    d0, d1, d2 = np.zeros(n), np.zeros(n - 1), np.ones(n - 2)
-    for r in range(n - 2):  # row r of L is (1, −2, 1) at (r, r + 1, r + 2)
-        d0[r] += 1.0
-        d0[r + 1] += 4.0
-        d0[r + 2] += 1.0
-        d1[r] -= 2.0
-        d1[r + 1] -= 2.0
-    return d0, d1, d2
 
 
 def _majorise(A, B, v, partial, W, solve):
