@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _kernels
+from . import _kernels, _kernels_face
 from ._kernels_nnls import FREE, LOWER, UPPER
 from ._sequence import Best, EigenSolver, Sequence, hessian_mul, multipliers, objective, project
 
@@ -32,6 +32,7 @@ _REACH = 1e-6  # a window reaches as far as ADMM's error takes to fall by this f
 _KKT_TOL = 1e-11  # a dimensionless KKT violation below this is none
 _MAX_SHARE = 0.5  # windows over more of the take than this: a face of the whole take is as cheap
 
+_LOCAL_SHARE = 0.01  # once the exchanges touch this share of the frames, windows finish (local_finish)
 _ALM_STEPS = 30  # method-of-multipliers steps per Newton step for active Σw = 1 rows
 
 
@@ -42,16 +43,36 @@ def classify(seq: Sequence, Z: np.ndarray):
     return state, sums
 
 
-def face_band(seq: Sequence, free: np.ndarray, sums: np.ndarray, rho_s: float) -> np.ndarray:
-    """Lower band ``(T·K, 2K + 1)`` of the face system, frame-major (see
-    :func:`keyshape.decompose._kernels.face_band`): free rows and columns hold
-    ``P + ρ_s Σ_{active t} 1 1ᵀ``, fixed ones the identity."""
-    band = np.zeros((free.size, 2 * free.shape[1] + 1))
-    _kernels.face_band(seq.G, seq.delta, float(seq.mu), *seq.gram, free, sums, float(rho_s), band)
-    return band
+class Workspace:
+    """Memory the face factorisations of one solve reuse: a fresh band of a long take is
+    hundreds of megabytes, and the first touch of new pages costs as much as filling them."""
+
+    def __init__(self):
+        self._flat = np.empty(0)
+
+    def band(self, rows: int, cols: int) -> np.ndarray:
+        """An uninitialised ``(rows, cols)`` array, a view of the workspace's memory."""
+        if self._flat.size < rows * cols:
+            self._flat = np.empty(int(1.1 * rows * cols) + 1)
+        return self._flat[: rows * cols].reshape(rows, cols)
 
 
-def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray):
+def face_factor(seq: Sequence, free: np.ndarray, sums: np.ndarray, rho_s: float, work: Workspace | None = None):
+    """Cholesky factor of the face system over the free variables only
+    (:mod:`keyshape.decompose._kernels_face`): ``(band, reach, index)``, ``index (T, K)`` the
+    free variables' numbers (−1 for fixed ones); the system is ``P_FF + ρ_s Σ_{active t} 1 1ᵀ``.
+    The band lives in ``work`` when given (valid until its next use)."""
+    index = np.empty(free.shape, dtype=np.int64)
+    reach = np.empty(free.size, dtype=np.int64)
+    n_free, width = _kernels_face.number_free(free, index, reach)
+    band = (work or Workspace()).band(n_free, width + 1)
+    _kernels_face.fill_face(seq.G, seq.delta, float(seq.mu), *seq.gram, index, sums, float(rho_s), band)
+    if not _kernels_face.factor_face(band, reach):
+        raise np.linalg.LinAlgError("banded Cholesky failed on the face: not positive definite")
+    return band, reach, index
+
+
+def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray, work: Workspace | None = None):
     """Minimiser ``X (T, K)`` of ``F`` on a face, and the multipliers ``ν (T,)`` of its sums.
 
     Bound variables sit at their bounds; free ones solve ``P_FF x_F = c_F − P_FN x_N``, with
@@ -62,39 +83,58 @@ def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray):
     fixed = np.where(state == UPPER, np.where(np.isfinite(seq.upper), seq.upper, 0.0), 0.0)
     # ρ_s ≈ 10 λ_max(P): the multiplier error then shrinks ≥ 10-fold per step
     rho_s = 10.0 * (float(np.abs(seq.G).sum(axis=1).max()) + 16.0 * seq.mu) if sums.any() else 0.0
-    factor, mask = face_band(seq, free, sums, rho_s), free.ravel()
-    if not _kernels.band_factor(factor, mask):
-        raise np.linalg.LinAlgError("banded Cholesky failed on the face: not positive definite")
-    rhs = seq.C - hessian_mul(seq, fixed)
+    band, reach = face_factor(seq, free, sums, rho_s, work)[:2]
+    rhs = seq.C - hessian_mul(seq, fixed) if fixed.any() else seq.C
     room = 1.0 - fixed.sum(axis=1)  # what the free variables of an active row must add up to
     nu = np.zeros(len(state))
+    X = fixed.copy()
     for _ in range(_ALM_STEPS if sums.any() else 1):
-        r = (rhs - np.where(sums, nu - rho_s * room, 0.0)[:, None]) * free
-        x = np.ascontiguousarray(r).reshape(-1)
-        _kernels.band_solve(factor, mask, x)
-        X = x.reshape(state.shape) * free
-        excess = np.where(sums, X.sum(axis=1) - room, 0.0)
+        x = np.ascontiguousarray((rhs - np.where(sums, nu - rho_s * room, 0.0)[:, None])[free])
+        _kernels_face.solve_face(band, reach, x)
+        X[free] = x
+        excess = np.where(sums, X.sum(axis=1) - fixed.sum(axis=1) - room, 0.0) if sums.any() else 0.0
         nu += rho_s * excess
         if np.abs(excess).max() <= 1e-13:
             break
-    return X + fixed, nu
+    return X, nu
 
 
 def newton(seq: Sequence, best: Best, *, rtol: float, max_newton: int, start: np.ndarray | None = None) -> None:
     """Primal–dual active-set steps from the active set of ``start`` (default ``best.Z``) until
     ``best`` certifies ``rtol``.
 
-    Each step lands on the exact minimiser of its face; should the exchanges stop shrinking
-    they are damped (:func:`exchange`), and the monotone :func:`active_set` finishes.
+    Each step lands on the exact minimiser of its face. While many variables still change
+    side the step is not certified (the bound would be poor, and it costs a solve); once few
+    do (:data:`_LOCAL_SHARE` of the frames), the remaining exchanges are local and
+    :func:`local_finish` settles them on windows around those frames. Should the exchanges
+    stop shrinking they are damped (:func:`exchange`), and the monotone :func:`active_set`
+    finishes.
     """
     state, sums = classify(seq, best.Z if start is None else start)
     history, limit = [], None
-    for _ in range(max_newton):
+    lam = np.linalg.eigvalsh(seq.G)
+    work = Workspace()
+    for step in range(max_newton):
         if best.gap <= rtol:
             break
-        X, nu = face_solve(seq, state, sums)
-        best.offer(project(X, seq.upper, seq.convex), multipliers(seq, X, state, np.where(sums, nu, 0.0)))
-        state, sums, changed = exchange(seq, state, sums, X, nu, limit)
+        X, nu = face_solve(seq, state, sums, work)
+        PX = hessian_mul(seq, X)
+        size, rows = violations(seq, state, sums, X, nu, PX)
+        new_state, new_sums, changed = _move(state, sums, X, size, rows, limit)
+        frames = int(((size > _KKT_TOL).any(axis=1) | (rows > _KKT_TOL)).sum())
+        few = frames <= _LOCAL_SHARE * len(X)
+        if few or limit is not None or step == max_newton - 1:
+            best.offer(project(X, seq.upper, seq.convex), multipliers(seq, X, state, np.where(sums, nu, 0.0), PZ=PX))
+            if best.gap <= rtol:
+                break
+            if few and changed and limit is None:  # the rest is local: windows around the violations
+                mask = _dilate((size > _KKT_TOL).any(axis=1) | (rows > _KKT_TOL), _margin(seq, lam))
+                mask |= np.roll(mask, 1) & np.roll(mask, -1)  # no 1-frame holes between windows
+                Z = project(X, seq.upper, seq.convex)
+                best.offer(solve_windows(seq, Z, mask, new_state, new_sums, max_newton=max_newton))
+                if best.gap <= rtol:
+                    break
+        state, sums = new_state, new_sums
         history.append(changed)
         if changed == 0:
             break
@@ -119,10 +159,10 @@ def exchange(seq: Sequence, state, sums, X, nu, limit=None):
     return _move(state, sums, X, *violations(seq, state, sums, X, nu), limit)
 
 
-def violations(seq: Sequence, state, sums, X, nu):
+def violations(seq: Sequence, state, sums, X, nu, PX=None):
     """Dimensionless KKT violations on a face: ``(T, K)`` of the variables, ``(T,)`` of the sum
-    rows; positive where the constraint changes side under :func:`exchange`."""
-    grad = hessian_mul(seq, X) - seq.C + np.where(sums, nu, 0.0)[:, None]  # ∇(F/2) + ν·1
+    rows; positive where the constraint changes side under :func:`exchange` (``PX = P X`` if known)."""
+    grad = (hessian_mul(seq, X) if PX is None else PX) - seq.C + np.where(sums, nu, 0.0)[:, None]  # ∇(F/2) + ν·1
     x_scale = 1.0 + np.abs(X).max()
     g_scale = (np.abs(seq.C).max() + np.abs(seq.G).max() + seq.mu) * x_scale
     primal = np.maximum(-X, X - seq.upper) / x_scale  # > 0: a free variable out of its box
@@ -234,20 +274,30 @@ class Window(Sequence):
 def local_finish(seq: Sequence, best: Best, *, rtol: float, max_newton: int) -> None:
     """Solve the windows around ``best.Z``'s unconverged frames exactly; offer the result to ``best``.
 
-    Primal–dual active-set steps (:func:`exchange`) on all windows at once; a window whose
+    Primal–dual active-set steps (:func:`exchange`) on all windows at once (:func:`solve_windows`),
+    from the active set of ``best.Z``.
+    """
+    mask = window_frames(seq, best.Z)
+    if mask.any():
+        best.offer(solve_windows(seq, best.Z, mask, *classify(seq, best.Z), max_newton=max_newton))
+
+
+def solve_windows(seq: Sequence, Z: np.ndarray, mask: np.ndarray, state: np.ndarray, sums: np.ndarray, *,
+                  max_newton: int) -> np.ndarray:
+    """``Z (T, K)`` with the frames of ``mask`` re-solved exactly, the others fixed, from the
+    active set ``(state, sums)`` there; feasible.
+
+    Primal–dual active-set steps on all windows (runs of ``mask``) at once; a window whose
     active set no longer changes sits at its exact minimiser and leaves, so later steps cost
     only the windows still moving. When the exchanges stop shrinking they are damped, down to
     the single largest violation per step (cheap on a few small windows, and it breaks the
     two-cycles seen on these problems); windows still moving after ``max_newton`` steps are
     finished by :func:`active_set`.
     """
-    mask = window_frames(seq, best.Z)
-    if not mask.any():
-        return
-    whole = restrict(seq, best.Z, mask)
+    whole = restrict(seq, Z, mask)
     run = np.cumsum(np.append(True, np.diff(whole.rows) > 1)) - 1  # (rows,) window of each row
-    X = np.array(best.Z[whole.rows])
-    state, sums = classify(whole, X)
+    X = np.array(Z[whole.rows])
+    state, sums = state[whole.rows].copy(), sums[whole.rows].copy()
     moving, history, limit = np.ones(len(X), bool), [], None
     for _ in range(max_newton):
         sub = select(whole, moving)
@@ -262,14 +312,14 @@ def local_finish(seq: Sequence, best: Best, *, rtol: float, max_newton: int) -> 
         if len(history) > 3 and changed >= history[-4]:  # no progress: damp the exchanges
             limit = max(1, (limit or changed) // 2)
             history.clear()
-    Z = best.Z.copy()
+    Z = Z.copy()
     Z[whole.rows] = project(X, seq.upper, seq.convex)
     if moving.any():  # cycling windows: the monotone method, from their best point so far
         sub = restrict(seq, Z, _frames(len(Z), whole.rows[moving]))
         local = Best(sub, EigenSolver(sub, 0.0), np.ascontiguousarray(Z[sub.rows]))
         active_set(sub, local, max_steps=int(np.clip(2e6 // sub.C.size, 20, 200)))
         Z[sub.rows] = local.Z
-    best.offer(Z)
+    return Z
 
 
 def select(window: Window, keep: np.ndarray) -> Window:
