@@ -128,7 +128,7 @@ def newton(seq: Sequence, best: Best, *, rtol: float, max_newton: int, start: np
             if best.gap <= rtol:
                 break
             if few and changed and limit is None:  # the rest is local: windows around the violations
-                mask = _dilate((size > _KKT_TOL).any(axis=1) | (rows > _KKT_TOL), _margin(seq, lam))
+                mask = _dilate((size > _KKT_TOL).any(axis=1) | (rows > _KKT_TOL), decay_margin(seq, lam))
                 mask |= np.roll(mask, 1) & np.roll(mask, -1)  # no 1-frame holes between windows
                 Z = project(X, seq.upper, seq.convex)
                 best.offer(solve_windows(seq, Z, mask, new_state, new_sums, max_newton=max_newton))
@@ -353,14 +353,14 @@ def window_frames(seq: Sequence, Z: np.ndarray) -> np.ndarray:
     gap = seq.delta == 0.0
     runs = np.cumsum(np.diff(np.concatenate([[False], gap])) > 0) * gap  # gap runs numbered 1, 2, ...
     hot |= np.isin(runs, runs[hot & gap]) & gap  # a window that reaches a gap spans it
-    mask = _dilate(hot, _margin(seq, lam))
+    mask = _dilate(hot, decay_margin(seq, lam))
     mask |= np.roll(mask, 1) & np.roll(mask, -1)  # no 1-frame holes: two windows would share a row of L
     if mask.mean() > _MAX_SHARE or residual[~mask].max() > _REACH * residual.max():
         return np.zeros(len(Z), bool)
     return mask
 
 
-def _margin(seq: Sequence, lam: np.ndarray) -> int:
+def decay_margin(seq: Sequence, lam: np.ndarray) -> int:
     """Frames over which the slowest mode with data, ``λ_min I + μ LᵀL``, decays by :data:`_REACH`.
 
     Its Green's function falls by ``|z|`` per frame, ``z`` the root inside the unit circle of

@@ -263,8 +263,7 @@ def solve_reduced(G, C, sq, upper, smoothness, convex, tol=1e-7):
     mu = _mu(G, smoothness)
     if mu == 0.0:  # all keys are zero: nothing to smooth
         return np.where(valid[:, None], nnls_gram(G, C, upper, convex), np.nan)
-    const = float(sq[valid].sum())
-    return spacetime_gram(G, C, valid, const, mu, upper, convex, rtol=tol)
+    return spacetime_gram(G, C, valid, sq, mu, upper, convex, rtol=tol)
 
 
 # --------------------------------------------------------------------------- validation
