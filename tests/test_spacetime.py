@@ -96,14 +96,13 @@ def test_eigen_solver_inverts_the_shifted_hessian():
 
 @pytest.mark.parametrize("seed", range(6))
 def test_face_factorisation_solves_the_free_block(seed):
-    from keyshape.decompose import _kernels_face
-
     rng = np.random.default_rng(seed)
     seq = sequence(seed, T=25, K=4, gaps=[(8, 11)], convex=True)
     free = rng.random((25, 4)) < (0.6 if seed % 2 else 0.25)  # sparse faces too: frames with nothing free
     sums = rng.random(25) < 0.3
     rho_s = 3.0
-    band, reach, index = _activeset.face_factor(seq, free, sums, rho_s)
+    factor = _activeset.face_factor(seq, free, sums, rho_s)
+    index, reach = factor.index, factor.reach
     # the factor is of P + ρ_s Σ_active 1 1ᵀ on the free block, numbered frame-major
     M = dense_hessian(seq) + rho_s * np.kron(np.diag(sums.astype(float)), np.ones((4, 4)))
     f = free.ravel()
@@ -112,12 +111,12 @@ def test_face_factorisation_solves_the_free_block(seed):
     expected = M[np.ix_(f, f)]
     L = np.zeros_like(expected)
     for j in range(len(L)):
-        L[j : j + reach[j] + 1, j] = band[j, : reach[j] + 1]
+        L[j : j + reach[j] + 1, j] = factor.packed[factor.offset[j] : factor.offset[j] + reach[j] + 1]
     np.testing.assert_allclose(L @ L.T, expected, atol=1e-10)
     np.testing.assert_allclose(L, np.linalg.cholesky(expected), atol=1e-10)  # nothing lost outside the reach
     b = rng.standard_normal(len(expected))
     x = b.copy()
-    _kernels_face.solve_face(band, reach, x)
+    factor.solve(x)
     np.testing.assert_allclose(x, np.linalg.solve(expected, b), rtol=1e-9, atol=1e-11)
 
 

@@ -44,32 +44,52 @@ def classify(seq: Sequence, Z: np.ndarray):
 
 
 class Workspace:
-    """Memory the face factorisations of one solve reuse: a fresh band of a long take is
-    hundreds of megabytes, and the first touch of new pages costs as much as filling them."""
+    """Memory the face factorisations of one solve reuse: a fresh factor of a long take is
+    tens of megabytes, and the first touch of new pages costs as much as filling them."""
 
     def __init__(self):
         self._flat = np.empty(0)
 
-    def band(self, rows: int, cols: int) -> np.ndarray:
-        """An uninitialised ``(rows, cols)`` array, a view of the workspace's memory."""
-        if self._flat.size < rows * cols:
-            self._flat = np.empty(int(1.1 * rows * cols) + 1)
-        return self._flat[: rows * cols].reshape(rows, cols)
+    def packed(self, size: int) -> np.ndarray:
+        """An uninitialised ``(size,)`` array, a view of the workspace's memory."""
+        if self._flat.size < size:
+            self._flat = np.empty(int(1.1 * size) + 1)
+        return self._flat[:size]
 
 
-def face_factor(seq: Sequence, free: np.ndarray, sums: np.ndarray, rho_s: float, work: Workspace | None = None):
-    """Cholesky factor of the face system over the free variables only
-    (:mod:`keyshape.decompose._kernels_face`): ``(band, reach, index)``, ``index (T, K)`` the
-    free variables' numbers (−1 for fixed ones); the system is ``P_FF + ρ_s Σ_{active t} 1 1ᵀ``.
-    The band lives in ``work`` when given (valid until its next use)."""
+@dataclass(frozen=True, eq=False)
+class FaceFactor:
+    """Cholesky factor of a face system over its free variables (:mod:`keyshape.decompose._kernels_face`).
+
+    ``index (T, K)`` numbers the free variables frame-major (−1 for fixed ones); column ``j``
+    of the factor holds ``packed[offset[j] : offset[j] + reach[j] + 1]``, its diagonal first.
+    """
+
+    index: np.ndarray
+    reach: np.ndarray
+    offset: np.ndarray
+    packed: np.ndarray
+    n_free: int
+
+    def solve(self, x: np.ndarray) -> None:
+        """``x ← (L Lᵀ)⁻¹ x`` in place, ``x (n_free,)`` float, C order."""
+        _kernels_face.solve_face(self.n_free, self.reach, self.offset, self.packed, x)
+
+
+def face_factor(seq: Sequence, free: np.ndarray, sums: np.ndarray, rho_s: float,
+                work: Workspace | None = None) -> FaceFactor:
+    """The factor of ``P_FF + ρ_s Σ_{active t} 1 1ᵀ`` over the free variables ``free (T, K)``
+    (in ``work``'s memory when given: valid until its next use)."""
     index = np.empty(free.shape, dtype=np.int64)
     reach = np.empty(free.size, dtype=np.int64)
-    n_free, width = _kernels_face.number_free(free, index, reach)
-    band = (work or Workspace()).band(n_free, width + 1)
-    _kernels_face.fill_face(seq.G, seq.delta, float(seq.mu), *seq.gram, index, sums, float(rho_s), band)
-    if not _kernels_face.factor_face(band, reach):
+    offset = np.empty(free.size, dtype=np.int64)
+    n_free, size = _kernels_face.number_free(free, index, reach, offset)
+    packed = (work or Workspace()).packed(size)
+    _kernels_face.fill_face(seq.G, seq.delta, float(seq.mu), *seq.gram, index, sums, float(rho_s), reach, offset,
+                            packed)
+    if not _kernels_face.factor_face(n_free, reach, offset, packed):
         raise np.linalg.LinAlgError("banded Cholesky failed on the face: not positive definite")
-    return band, reach, index
+    return FaceFactor(index, reach, offset, packed, n_free)
 
 
 def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray, work: Workspace | None = None):
@@ -83,14 +103,14 @@ def face_solve(seq: Sequence, state: np.ndarray, sums: np.ndarray, work: Workspa
     fixed = np.where(state == UPPER, np.where(np.isfinite(seq.upper), seq.upper, 0.0), 0.0)
     # ρ_s ≈ 10 λ_max(P): the multiplier error then shrinks ≥ 10-fold per step
     rho_s = 10.0 * (float(np.abs(seq.G).sum(axis=1).max()) + 16.0 * seq.mu) if sums.any() else 0.0
-    band, reach = face_factor(seq, free, sums, rho_s, work)[:2]
+    factor = face_factor(seq, free, sums, rho_s, work)
     rhs = seq.C - hessian_mul(seq, fixed) if fixed.any() else seq.C
     room = 1.0 - fixed.sum(axis=1)  # what the free variables of an active row must add up to
     nu = np.zeros(len(state))
     X = fixed.copy()
     for _ in range(_ALM_STEPS if sums.any() else 1):
         x = np.ascontiguousarray((rhs - np.where(sums, nu - rho_s * room, 0.0)[:, None])[free])
-        _kernels_face.solve_face(band, reach, x)
+        factor.solve(x)
         X[free] = x
         excess = np.where(sums, X.sum(axis=1) - fixed.sum(axis=1) - room, 0.0) if sums.any() else 0.0
         nu += rho_s * excess

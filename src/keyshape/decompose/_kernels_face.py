@@ -13,8 +13,9 @@ The factorisation is Cholesky on a *variable* band (an envelope; Golub & Van Loa
 envelope, so each column's elimination runs over its own reach instead of the widest one.
 A frame with few free variables then costs little.
 
-* :func:`number_free` — compressed indices of the free variables and each column's reach;
-* :func:`fill_face` — the lower band of ``P_FF (+ ρ_s Σ_{active t} 1 1ᵀ)``;
+* :func:`number_free` — compressed indices of the free variables, each column's reach and
+  where it starts in the packed storage (column after column, each as long as its reach);
+* :func:`fill_face` — the packed lower envelope of ``P_FF (+ ρ_s Σ_{active t} 1 1ᵀ)``;
 * :func:`factor_face` / :func:`solve_face` — ``P_FF = L Lᵀ`` in place, and ``L Lᵀ x = r``.
 
 References
@@ -32,12 +33,13 @@ from ._kernels import jit
 
 
 @jit
-def number_free(free, index, reach):
-    """Number the free variables frame-major; returns ``(n_free, width)``.
+def number_free(free, index, reach, offset):
+    """Number the free variables frame-major; returns ``(n_free, size)``.
 
     ``free (T, K)`` bool; ``index (T, K)`` int64 receives each free variable's number (−1 when
-    fixed); ``reach (T·K,)`` int64 receives, for the first ``n_free`` entries, how far below the
-    diagonal column ``j`` of the factor reaches (its envelope); ``width`` is the largest reach.
+    fixed); for the first ``n_free`` entries, ``reach (T·K,)`` int64 receives how far below the
+    diagonal column ``j`` of the factor reaches (its envelope) and ``offset (T·K,)`` int64 where
+    the column starts in the packed storage, ``size`` numbers in all.
     """
     T, K = free.shape
     n = 0
@@ -49,7 +51,7 @@ def number_free(free, index, reach):
             else:
                 index[t, i] = -1
     low = 0  # max over the columns so far of their last nonzero row (absolute)
-    width = 0
+    size = 0
     for t in range(T):
         last_here = -1  # the frame's last free variable: the within-frame couplings reach it
         for i in range(K):
@@ -66,15 +68,16 @@ def number_free(free, index, reach):
                 deepest = max(deepest, index[t + 2, i])
             low = max(low, deepest)
             reach[j] = low - j
-            width = max(width, low - j)
-    return n, width
+            offset[j] = size
+            size += low - j + 1
+    return n, size
 
 
 @jit
-def fill_face(G, delta, mu, d0, d1, d2, index, sums, rho_s, band):
-    """Fill ``band (n_free, width + 1)`` (any values on entry): ``band[j, o] = M[j + o, j]`` for the
-    free rows and columns of ``M = P + ρ_s Σ_{active t} 1 1ᵀ`` (``d0, d1, d2 (T,)`` the diagonals
-    of ``LᵀL``; ``sums (T,)`` the active rows), zero elsewhere."""
+def fill_face(G, delta, mu, d0, d1, d2, index, sums, rho_s, reach, offset, packed):
+    """Fill the packed columns (any values on entry): ``packed[offset[j] + o] = M[j + o, j]`` for
+    ``o ≤ reach[j]``, ``M = P + ρ_s Σ_{active t} 1 1ᵀ`` on the free variables (``d0, d1, d2 (T,)``
+    the diagonals of ``LᵀL``; ``sums (T,)`` the active rows)."""
     T, K = index.shape
     for t in range(T):
         pen = rho_s if sums[t] else 0.0
@@ -82,55 +85,57 @@ def fill_face(G, delta, mu, d0, d1, d2, index, sums, rho_s, band):
             j = index[t, i]
             if j < 0:
                 continue
-            for o in range(band.shape[1]):
-                band[j, o] = 0.0
+            col = offset[j]
+            for o in range(reach[j] + 1):
+                packed[col + o] = 0.0
             for i2 in range(i, K):
                 j2 = index[t, i2]
                 if j2 >= 0:
-                    band[j, j2 - j] = delta[t] * G[i2, i] + pen
-            band[j, 0] += mu * d0[t]
+                    packed[col + j2 - j] = delta[t] * G[i2, i] + pen
+            packed[col] += mu * d0[t]
             if t + 1 < T and index[t + 1, i] >= 0:
-                band[j, index[t + 1, i] - j] = mu * d1[t]
+                packed[col + index[t + 1, i] - j] = mu * d1[t]
             if t + 2 < T and index[t + 2, i] >= 0:
-                band[j, index[t + 2, i] - j] = mu * d2[t]
+                packed[col + index[t + 2, i] - j] = mu * d2[t]
 
 
 @jit
-def factor_face(band, reach):
-    """Cholesky ``M = L Lᵀ`` in place on the band of :func:`fill_face`, column ``j`` over
-    ``reach[j]`` rows below the diagonal (right-looking); False if not positive definite."""
-    n = band.shape[0]
+def factor_face(n, reach, offset, packed):
+    """Cholesky ``M = L Lᵀ`` in place on the packed columns of :func:`fill_face` (right-looking:
+    column ``j`` updates the columns of its reach, whose own reach covers the rest of it, as
+    the envelope only grows); False if not positive definite."""
     for j in range(n):
-        p = band[j, 0]
+        last = reach[j] + 1
+        col = packed[offset[j] : offset[j] + last]
+        p = col[0]
         if not p > 0.0:
             return False
         p = np.sqrt(p)
-        band[j, 0] = p
-        col = band[j]
-        last = reach[j] + 1
+        col[0] = p
         for o in range(1, last):
             col[o] /= p
         for a in range(1, last):
             la = col[a]
             if la == 0.0:
                 continue
-            row = band[j + a]
-            for b in range(a, last):  # contiguous: row[b − a] is M[j + b, j + a]
+            row = packed[offset[j + a] : offset[j + a] + last - a]  # row[b − a] is M[j + b, j + a]
+            for b in range(a, last):
                 row[b - a] -= col[b] * la
     return True
 
 
 @jit
-def solve_face(band, reach, x):
+def solve_face(n, reach, offset, packed, x):
     """Solve ``L Lᵀ y = x`` in place for ``x (n_free,)`` with the factor of :func:`factor_face`."""
-    n = band.shape[0]
     for j in range(n):
-        xj = x[j] / band[j, 0]
+        col = offset[j]
+        xj = x[j] / packed[col]
         x[j] = xj
         for o in range(1, reach[j] + 1):
-            x[j + o] -= band[j, o] * xj
+            x[j + o] -= packed[col + o] * xj
     for j in range(n - 1, -1, -1):
+        col = offset[j]
         s = x[j]
         for o in range(1, reach[j] + 1):
-            s -= band[j, o] * x[j + o]
-        x[j] = s / band[j, 0]
+            s -= packed[col + o] * x[j + o]
+        x[j] = s / packed[col]
