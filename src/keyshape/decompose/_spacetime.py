@@ -124,7 +124,8 @@ def admm_rho(seq: Sequence, lam: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- driver
 
 
-def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, max_newton: int = 40):
+def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, switch: float = 1e-4,
+                   max_newton: int = 40):
     """Minimiser ``W (T, K)`` of ``F`` to relative accuracy ``rtol`` (certified by duality).
 
     ADMM starts from the unconstrained minimiser ``P⁻¹c``, clipped into the constraint set, and
@@ -133,7 +134,9 @@ def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, ma
     round, that factor predicts how many more iterations reach ``rtol``, and the next
     certificate is placed there (at most :data:`_MAX_ROUND` iterations on). Where ADMM
     stalls, or would need more iterations than the active-set Newton steps cost
-    (:data:`_NEWTON_COST`), primal–dual active-set steps finish (:func:`newton`). Keys so
+    (:data:`_NEWTON_COST`) once its gap is below ``switch`` (before that, ADMM has not yet
+    settled away from long gaps, where the windows of :func:`local_finish` need it to),
+    primal–dual active-set steps finish (:func:`newton`). Keys so
     alike that ADMM would crawl from the start (:func:`admm_iterations` above
     :data:`_ADMM_LIMIT`: a key set with near-copies, such as a key and its mirror image) go to
     the Newton steps at once, from the per-frame solution.
@@ -175,7 +178,7 @@ def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, ma
         if not rate < 0.98:  # stalled
             break
         need = np.log(rtol / best.gap) / np.log(rate)
-        if need > _NEWTON_COST:
+        if need > _NEWTON_COST and best.gap <= switch:
             break
         rounds = int(np.clip(np.ceil(1.25 * need) + 1, 2, _MAX_ROUND))  # a missed certificate costs more
     handed = best.Z
