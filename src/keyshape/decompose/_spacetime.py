@@ -11,7 +11,7 @@ data (0 in a gap), the solver minimises
 
 a convex QP whose Hessian ``P = blockdiag(δ_t G) + μ LᵀL ⊗ I_K`` (``L`` the second-difference
 operator) is block pentadiagonal. Nothing is filtered, so there is no lag: every frame's weights
-are fitted with the frames on both sides. The solver has three parts:
+are fitted with the frames on both sides. The solver has four parts:
 
 1. *ADMM* (Boyd et al. 2011, §5; over-relaxation α = 1.8) on ``W = Z``, ``Z`` in the constraint
    set, with a per-frame penalty ``ρ_t`` (:func:`admm_rho`). Its linear step
@@ -25,17 +25,24 @@ are fitted with the frames on both sides. The solver has three parts:
    problems ADMM alone proves ``rtol`` in 20–60 iterations.
 2. *Primal–dual active set* (Hintermüller, Ito & Kunisch 2003, a semismooth Newton method)
    from ADMM's active set, where ADMM stalls (long gaps, where only the smoothness term
-   holds the weights): the bound variables are fixed, the free ones solve the reduced system
-   by one banded Cholesky factorisation of bandwidth ``2K`` (variables ordered frame-major;
-   fixed variables cost nothing); active ``Σw = 1`` rows are added by the method of
-   multipliers on the same factorisation. Each step lands on the exact minimiser of its face;
-   should the exchanges cycle (degenerate problems) they are damped, and a monotone primal
-   active-set method (Nocedal & Wright, Alg. 16.3) finishes. Where ADMM has converged but
+   holds the weights), and from the per-frame solution where ADMM would crawl from the
+   start (keys that are near-copies of each other, as a key and its mirror image on a
+   symmetric face: ``cond(G)`` in the tens of thousands, forecast by :func:`admm_iterations`):
+   the bound variables are fixed, the free ones solve the reduced system by one Cholesky
+   factorisation over the free variables only, numbered frame-major (a variable band of at
+   most ``2K``; :mod:`keyshape.decompose._kernels_face`); active ``Σw = 1`` rows are added
+   by the method of multipliers on the same factorisation. Each step lands on the exact
+   minimiser of its face; once few variables still change side, windows around them finish
+   (:func:`keyshape.decompose._activeset.newton`); should the exchanges cycle (degenerate
+   problems) they are damped, and a monotone primal active-set method (Nocedal & Wright,
+   Alg. 16.3) finishes. Where ADMM has converged but
    around long gaps, these steps run first on windows around them only, with the other frames
    fixed (:func:`keyshape.decompose._activeset.local_finish`): a few hundred frames per gap
    instead of the take, one exact small solve per gap; the steps on the whole take remain
    the fallback, from ADMM's own active set.
-3. A *duality-gap certificate* stops every part: for multipliers ``y`` the Lagrangian dual
+3. A take of at least twice :data:`_PIECE_FRAMES` frames is solved in overlapping pieces,
+   one per core (:func:`solve_pieces`), joined, and certified as a whole.
+4. A *duality-gap certificate* stops every part: for multipliers ``y`` the Lagrangian dual
    ``q(y) = const − (c − y)ᵀP⁻¹(c − y) − 2σ_C(y)`` (one solve with the pentadiagonal factors of
    ``P``) bounds ``F*`` from below, so ``F(Z) − q(y) ≤ rtol·F(Z)`` proves that ``Z`` is within
    ``rtol`` of the optimum (``rtol = 1e-7`` by default).
