@@ -10,6 +10,7 @@ the reduced data, exactly as :func:`solve_take` solves it.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +19,7 @@ import numpy as np
 from ..alignment import procrustes, to_canonical
 from ..capture.filters import GapReport, gap_report, hold_neutral
 from ..containers import KeyShapes, Weights
-from ..decompose import GramTake
+from ..decompose import GramTake, load_kernels
 from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from ..exceptions import InputError
 from ..io import TrackFile, load_track, open_track
@@ -58,7 +59,10 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
-    face = _reduce(source, keys, take, chunk)
+    with ThreadPoolExecutor(max_workers=1) as loader:  # numba starts (~0.6 s) while the take is read
+        loading = loader.submit(load_kernels)
+        face = _reduce(source, keys, take, chunk)
+        loading.result()
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
     for start, stop in _segments(gaps):  # held gaps split the take, as in solve_take
