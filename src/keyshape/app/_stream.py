@@ -17,14 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from ..alignment import procrustes, to_canonical
-from ..capture.filters import GapReport, gap_report, hold_neutral
+from ..capture.filters import GapReport, fill_edges, gap_report, hold_neutral, segments
 from ..containers import KeyShapes, Poses, Weights
 from ..decompose import GramTake, load_kernels
 from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from ..exceptions import InputError
 from ..io import TrackFile, load_track, open_track
 from ..schemes import stable_points
-from ._pipeline import _fill_hidden, _segments, solve_take
 
 __all__ = ["solve_track_file", "SolvedFile"]
 
@@ -57,6 +56,8 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
                          f"made from {keys.n_landmarks} in {keys.n_dims}D")
     take = GramTake(keys, 0 if source is None else source.n_frames)
     if source is None or not _all_seen(source, take.landmarks):
+        from ._pipeline import solve_take  # with the key-shape search and tracking code: only this path needs it
+
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
@@ -66,9 +67,9 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
         loading.result()
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
-    for start, stop in _segments(gaps):  # held gaps split the take, as in solve_take
+    for start, stop in segments(gaps):  # held gaps split the take, as in solve_take
         solved = take.solve(start, stop, upper=upper, smoothness=smoothness, convex=convex)
-        values[start:stop] = _fill_hidden(solved, face[start:stop])
+        values[start:stop] = fill_edges(solved, face[start:stop])
     if smoothness > 0:
         values = hold_neutral(values, gaps)
     return SolvedFile(Weights(values, keys.names, source.fps, source.frame_index, source.time), gaps)
