@@ -159,7 +159,8 @@ def _rotations(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 _I, _J = np.divmod(np.arange(9), 3)
 _COF = [((_I + a) % 3) * 3 + (_J + b) % 3 for a, b in ((1, 1), (2, 2), (1, 2), (2, 1))]
 _POLAR_COND = 1e-6  # det Σ / ‖Σ‖_F³ above this (σ_min / σ_max > 1e-6): Newton's iteration is used
-_POLAR_STEPS = 20  # Newton steps at most; it converges in 5 to 7 on a face's stable points
+_POLAR_STEPS = 20  # Newton steps at most; it converges in 5 or 6 on a face's stable points
+_POLAR_TOL = 1e-9  # the largest move of an entry of X before the final step (see _polar)
 
 
 def _polar(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -168,8 +169,9 @@ def _polar(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Scaled Newton iteration ``X ← (ζ X + X⁻ᵀ / ζ) / 2``, ``X⁻ᵀ = cof(X) / det X``, with the
     Frobenius-norm scaling ``ζ = (‖X⁻¹‖ / ‖X‖)^½`` (Higham 1986; Higham, *Functions of Matrices*,
-    2008, §8.6), until no entry moves by more than 1e-14; with ``σ_min / σ_max > 1e-6`` it converges
-    quadratically from the first step, and the factor agrees with ``U Vᵀ`` of the SVD to rounding.
+    2008, §8.6), until a step moves no entry by more than 1e-9: the error before that step was
+    about its move, so after it (the iteration converges quadratically) it is below
+    ``‖X⁻¹‖ · 1e-18 / 2``, rounding. The factor agrees with ``U Vᵀ`` of the SVD to rounding.
     """
     flat = cov.reshape(len(cov), 9)
     cof = flat[:, _COF[0]] * flat[:, _COF[1]] - flat[:, _COF[2]] * flat[:, _COF[3]]
@@ -183,9 +185,9 @@ def _polar(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         zeta = np.sqrt(np.sqrt(np.einsum("fj,fj->f", cof, cof) / np.einsum("fj,fj->f", x, x)) / det)
         step = 0.5 * (zeta[:, None] * x + cof / (zeta * det)[:, None])
         moved, x = np.abs(step - x), step
-        if not moved.max(initial=0.0) > 1e-14:
+        if not moved.max(initial=0.0) > _POLAR_TOL:
             break
-    done = moved.max(axis=1, initial=0.0) <= 1e-14 if len(x) else np.zeros(0, dtype=bool)
+    done = moved.max(axis=1, initial=0.0) <= _POLAR_TOL
     rest = np.ones(len(cov), dtype=bool)
     rest[todo[done]] = False
     return x[done].reshape(-1, 3, 3), rest
