@@ -10,7 +10,6 @@ the reduced data, exactly as :func:`solve_take` solves it.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import numpy as np
 from ..alignment import procrustes, to_canonical
 from ..capture.filters import GapReport, fill_edges, gap_report, hold_neutral, segments
 from ..containers import KeyShapes, Poses, Weights
-from ..decompose import GramTake, load_kernels
+from ..decompose import GramTake
 from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from ..exceptions import InputError
 from ..io import TrackFile, load_track, open_track
@@ -61,10 +60,7 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
-    with ThreadPoolExecutor(max_workers=1) as loader:  # numba starts (~0.6 s) while the take is read
-        loading = loader.submit(load_kernels)
-        face = _reduce(source, keys, take, chunk)
-        loading.result()
+    face = _reduce(source, keys, take, chunk)
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
     for start, stop in segments(gaps):  # held gaps split the take, as in solve_take

@@ -10,11 +10,10 @@
 Private modules: ``_solve`` (the public functions and their checks), ``_gramtake``, ``_nnls`` and ``_reduced``
 (batched per-frame NNLS), ``_spacetime``, ``_sequence`` and ``_activeset`` (the smoothed solve),
 ``_kernels`` and ``_kernels_nnls`` (the numba-compiled kernels; numba is imported only there, on
-the first solve or by :func:`load_kernels`).
+the first solve: importing this package is light).
 """
 
 from ._gramtake import GramTake
-from ._nnls import load_kernels
 from ._solve import check_upper, solve_nnls, solve_spacetime, solve_weights
 
-__all__ = ["solve_weights", "solve_nnls", "solve_spacetime", "check_upper", "GramTake", "load_kernels"]
+__all__ = ["solve_weights", "solve_nnls", "solve_spacetime", "check_upper", "GramTake"]

@@ -135,7 +135,7 @@ def box_solve(gram: Gram, C: np.ndarray, upper: np.ndarray, state: np.ndarray):
     X : (n, K) float, the solutions, within ``[0, u]``
     state : (n, K) int8, their classification
     """
-    from . import _kernels_nnls  # numba: imported on the first solve (load_kernels)
+    from . import _kernels_nnls  # numba (half a second to start): imported on the first solve
 
     state = np.array(state, dtype=np.int8, order="C")
     X = np.empty(C.shape)
@@ -257,16 +257,6 @@ def _newton_step(gram, state, a, nu, phi, lo, hi):
 
 
 # --------------------------------------------------------------------------- entry point
-
-
-def load_kernels() -> None:
-    """Import numba and load the compiled kernels from their cache, as the first solve would.
-
-    In a fresh process this takes about half a second (numba's own start-up, mostly); every
-    kernel after the first then loads in milliseconds. A caller with other work to do before
-    its first solve can do this meanwhile on a thread (``keyshape solve`` while it reads the take).
-    """
-    nnls_gram(np.eye(1), np.ones((1, 1)), np.ones(1))
 
 
 def nnls_gram(G, C, upper=None, convex=False):

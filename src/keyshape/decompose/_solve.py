@@ -34,7 +34,7 @@ from ..exceptions import InputError
 from ._nnls import nnls_gram
 
 # The smoothed and the weighted solves (_spacetime, _weighted) and the kernels of all solves (numba)
-# are imported on first use: importing keyshape.decompose stays light (see _nnls.load_kernels).
+# are imported on first use: importing keyshape.decompose stays light.
 
 __all__ = ["solve_nnls", "solve_spacetime", "solve_weights", "check_upper"]
 
