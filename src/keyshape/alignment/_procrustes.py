@@ -107,7 +107,7 @@ def _umeyama(src: np.ndarray, dst: np.ndarray, *, scale: bool):
     Returns rotations ``(n_frames, d, d)``, translations ``(n_frames, d)``, scales
     ``(n_frames,)`` and a ``(n_frames,)`` bool mask of well-posed frames.
     """
-    n, d = len(dst), dst.shape[2]
+    n = len(dst)
     # means and centring as einsum and per coordinate: the sums of x.mean(axis=1), x - μ[:, None], in
     # loops over the points rather than over the d coordinates of each point
     mu_src, mu_dst = np.einsum("fpi->fi", src) / src.shape[1], np.einsum("fpi->fi", dst) / dst.shape[1]

@@ -20,7 +20,7 @@ _LAZY = {
     **dict.fromkeys(("VideoInfo", "iter_frames", "probe"), "video"),
 }
 
-__all__ = ["track_video", "track_to_file", "FaceFollower", "TrackerOptions", "MediaPipeTracker",  # noqa: PLE0604
+__all__ = ["track_video", "track_to_file", "FaceFollower", "TrackerOptions", "MediaPipeTracker",
            "default_model_path", "BLENDSHAPE_NAMES", "probe", "iter_frames", "VideoInfo",
            "Gaze", "estimate_gaze", "GapReport", "gap_report", "find_gaps", "hold_neutral", "OneEuro", "one_euro"]
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -133,7 +134,7 @@ def _workers(n_frames: int) -> int:
 def _parts(n_frames: int, n_parts: int) -> list[slice]:
     """``n_parts`` consecutive slices of about equal size covering ``0 ... n_frames - 1``."""
     edges = np.linspace(0, n_frames, max(n_parts, 1) + 1).round().astype(int)
-    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+    return [slice(int(a), int(b)) for a, b in pairwise(edges)]
 
 
 def _each(solve, tasks: list, n_frames: int) -> list[np.ndarray]:

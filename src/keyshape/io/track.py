@@ -25,7 +25,7 @@ from .validate import PointsCheck, check_track_arrays
 __all__ = ["save_track", "load_track", "open_track", "TrackFile"]
 
 FORMAT_VERSION = 1
-_BLOCK_BYTES = 1 << 19  # frames read at a time by TrackFile.chunks: half a core's L2 cache (about 90 frames of 478 landmarks)
+_BLOCK_BYTES = 1 << 19  # read by TrackFile.chunks at a time: half a core's L2 cache (90 frames of 478 landmarks)
 
 
 def save_track(track: Track, path: str | Path) -> Path:
