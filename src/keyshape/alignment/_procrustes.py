@@ -252,7 +252,7 @@ def to_canonical(points: np.ndarray, poses: Poses) -> np.ndarray:
     # out[f, p, i] = Σ_j (x[f, p, j] - t[f, j]) · R[f, j, i] / s[f], one batched matmul per chunk
     scaled = poses.rotations / poses.scales[:, None, None]
     out = np.empty(points.shape, dtype=np.result_type(points.dtype, scaled.dtype))
-    step = max(1, _CHUNK_BYTES // max(out[0].nbytes, 1))
+    step = max(1, _CHUNK_BYTES // max(out.itemsize * points.shape[1] * points.shape[2], 1))
     for lo in range(0, len(points), step):
         hi = lo + step
         np.matmul(_minus(points[lo:hi], poses.translations[lo:hi]), scaled[lo:hi], out=out[lo:hi])
