@@ -74,6 +74,27 @@ def test_procrustes_batched_matches_single_frames_and_keeps_nan():
         np.testing.assert_allclose(batch.translations[f], single.translations[0], atol=1e-12)
 
 
+def test_rotations_by_newton_are_the_svd_rotations():
+    """3D frames solved by Newton's polar iteration give Umeyama's U S Vᵀ of the SVD to rounding;
+    a reflection (det Σ < 0), rank-deficient and ill-conditioned frames take the SVD itself."""
+    from keyshape.alignment._procrustes import _polar, _rotations
+
+    rng = np.random.default_rng(3)
+    cov = rng.standard_normal((400, 3, 3)) * 10.0 ** rng.uniform(-3, 3, (400, 1, 1))
+    cov *= np.sign(np.linalg.det(cov))[:, None, None]  # det Σ > 0, as a face's stable points give
+    cov[:4] = [np.diag([1.0, 1.0, -1.0]), np.outer([1.0, 2, 3], [3.0, 1, 2]), np.diag([1.0, 1.0, 1e-8]),
+               np.diag([1.0, 1e-9, 1e-9])]
+    rotations, trace, good = _rotations(cov)
+    u, sv, vt = np.linalg.svd(cov)
+    sign = np.sign(np.linalg.det(u) * np.linalg.det(vt))
+    expected = (u * np.stack([np.ones_like(sign), np.ones_like(sign), sign], axis=1)[:, None, :]) @ vt
+    np.testing.assert_allclose(rotations, expected, atol=1e-12)
+    np.testing.assert_allclose(trace, sv[:, :2].sum(axis=1) + sign * sv[:, 2], rtol=1e-12)
+    assert good.tolist()[:4] == [True, False, True, True]
+    newton = ~_polar(cov)[1]
+    assert not newton[:4].any() and newton[4:].mean() > 0.9  # most random frames are well posed
+
+
 def test_procrustes_degenerate_frame_warns_and_is_nan():
     source = np.random.default_rng(4).normal(size=(5, 3))
     targets = np.stack([source, np.zeros((5, 3))])

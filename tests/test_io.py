@@ -60,6 +60,40 @@ def test_weights_csv_round_trip(tmp_path):
     assert header == "frame,time,upper_00,upper_01,lower_00"
 
 
+_SPECIAL = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 1 / 128, 3 / 128, 0.5, 1.0, 1e6, 1e6 - 1e-7, 1e-7, 5e-7,
+                     -5e-7, 4.9999999e-7, 1e300, -1e-300, 2.5e-6, 123456.0000005, 0.9999995, 99.9999996])
+
+
+def _cells(kind: str, rng, shape: tuple[int, int]) -> np.ndarray:
+    if kind == "weights":
+        return rng.random(shape)
+    if kind == "scaled":
+        return rng.standard_normal(shape) * 10.0 ** rng.integers(-8, 12, shape)
+    if kind == "special":
+        return rng.choice(_SPECIAL, shape)
+    if kind == "dyadic":  # ties at the sixth decimal: multiples of 1/128
+        return rng.integers(-10**6, 10**6, shape) / 2.0 ** rng.integers(0, 12, shape)
+    return np.round(rng.random(shape), 4) + rng.choice([0, 5e-7, -5e-7], shape)  # near ties
+
+
+@pytest.mark.parametrize("kind", ["weights", "scaled", "special", "dyadic", "rounded"])
+def test_weights_csv_cells_are_what_percent_formatting_writes(kind):
+    """The numpy cell writer gives the bytes of "%d,%.6f,..." % row (NaN empty), ties and rows it
+    leaves to "%" (inf, huge values, frames beyond 10⁸) included."""
+    from keyshape.io.weights_csv import _rows
+
+    rng = np.random.default_rng(len(kind))
+    for _ in range(40):
+        n, c = int(rng.integers(1, 40)), int(rng.integers(0, 6))
+        values = _cells(kind, rng, (n, c))
+        frames = np.sort(rng.choice([0, 7, 99_999_999, 10**8, 2**53 + 1, 12345], n)) if c % 2 else np.arange(n) * 3
+        times = rng.choice(_SPECIAL, n) if c == 3 else rng.random(n) * 10.0 ** rng.integers(0, 8)
+        line = ",".join(["%d", "%.6f"] + ["%.6f"] * c) + "\r\n"
+        table = np.column_stack([frames, times, values]).astype(float)
+        expected = ((line * n) % tuple(table.ravel().tolist())).replace("nan", "")
+        assert _rows(frames, times, values) == expected
+
+
 def test_keys_round_trip(tmp_path):
     neutral = np.arange(12, dtype=float).reshape(4, 3)
     deltas = np.zeros((2, 4, 3))

@@ -134,16 +134,20 @@ def test_cli_solve_streams_the_same_weights(perf, keys, tmp_path):
     np.testing.assert_array_equal(written.frame_index, whole.frame_index)
 
 
-def test_regions_on_threads_give_the_same_weights(perf, keys, monkeypatch):
+@pytest.mark.parametrize("smoothness", [0.1, 0.0])
+def test_regions_on_threads_give_the_same_weights(perf, keys, monkeypatch, smoothness):
+    """Threads solve the regions (smoothed) or parts of their frames (per frame) as one thread does."""
     from keyshape.decompose import _gramtake
 
     aligned = align(perf.track, reference=keys.neutral, stable=perf.stable)[0]
     take = GramTake(keys, aligned.n_frames)
     take.add(0, aligned.points[:, take.landmarks])
-    one_by_one = take.solve(smoothness=0.1, upper=1.0)
+    one_by_one = take.solve(smoothness=smoothness, upper=1.0)
     monkeypatch.setattr(_gramtake, "_PARALLEL_FRAMES", 0)
-    monkeypatch.setattr(_gramtake.os, "cpu_count", lambda: 2)
-    np.testing.assert_array_equal(take.solve(smoothness=0.1, upper=1.0), one_by_one)
+    monkeypatch.setattr(_gramtake.os, "cpu_count", lambda: 3)
+    np.testing.assert_array_equal(take.solve(smoothness=smoothness, upper=1.0), one_by_one)
+    if not smoothness:  # frames 5 ... 96 alone, in three parts: their weights in the whole take
+        np.testing.assert_array_equal(take.solve(5, 97, upper=1.0), one_by_one[5:97])
 
 
 def test_a_track_of_other_landmarks_is_refused_before_it_is_read(keys, tmp_path):

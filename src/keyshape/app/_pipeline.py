@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..alignment import align, choose_neutral, choose_neutral_frame
-from ..capture.filters import GapReport, gap_report, hold_neutral
+from ..capture.filters import GapReport, fill_edges, gap_report, hold_neutral, segments
 from ..capture.gaze import Gaze, estimate_gaze
 from ..containers import KeyShapes, Poses, Track, Weights
 from ..decompose import solve_weights
@@ -298,9 +298,9 @@ def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMO
     aligned, poses = align(track, reference=keys.neutral, stable=stable)
     gaps = gap_report(track.valid, max_bridge=int(round(max_bridge * track.fps)))
     values = np.full((track.n_frames, keys.n_keys), np.nan)
-    for start, stop in _segments(gaps):  # held gaps split the take: no data, nothing to bridge
+    for start, stop in segments(gaps):  # held gaps split the take: no data, nothing to bridge
         solved = solve_weights(aligned[start:stop], keys, upper=upper, smoothness=smoothness, convex=convex).values
-        values[start:stop] = _fill_hidden(solved, track.valid[start:stop])
+        values[start:stop] = fill_edges(solved, track.valid[start:stop])
     if smoothness > 0:
         values = hold_neutral(values, gaps)
     weights = Weights(values, keys.names, track.fps, track.frame_index, track.time)
@@ -321,34 +321,6 @@ def fit_errors(tracks: Track | Sequence[Track], keys: KeyShapes, *,
     errors = reconstruction_error(Track(points, tracks[0].fps, visibility=_seen(tracks)), keys, upper=upper)
     length, unit = face_scale(keys.neutral)
     return {region: 100 * e / length for region, e in errors.items()}, unit
-
-
-def _fill_hidden(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Weights ``(n_frames, n_keys)`` with a value in every frame that has a face.
-
-    A region hidden (a hand over the mouth) at the start or end of a run of faces has nothing to
-    be bridged from on one side: its weights hold the nearest solved frame's (inside a run the
-    smooth solve has bridged them already; this interpolates any that are left).
-    """
-    missing = valid[:, None] & np.isnan(values)
-    if not missing.any():
-        return values
-    values = values.copy()
-    frames = np.arange(len(values))
-    for k in np.flatnonzero(missing.any(axis=0)):
-        known = np.isfinite(values[:, k])
-        values[missing[:, k], k] = np.interp(frames[missing[:, k]], frames[known], values[known, k]) \
-            if known.any() else 0.0
-    return values
-
-
-def _segments(gaps: GapReport) -> list[tuple[int, int]]:
-    """``(start, stop)`` runs of frames between the held gaps (each starts and ends with a face)."""
-    held = np.zeros(gaps.n_frames, dtype=bool)
-    for start, length in gaps.held:
-        held[start:start + length] = True
-    edges = np.flatnonzero(np.diff(np.concatenate([[1], held.astype(np.int8), [1]])))
-    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
 
 def head_poses(track: Track) -> Poses:

@@ -16,18 +16,18 @@ from pathlib import Path
 import numpy as np
 
 from ..alignment import procrustes, to_canonical
-from ..capture.filters import GapReport, gap_report, hold_neutral
-from ..containers import KeyShapes, Weights
+from ..capture.filters import GapReport, fill_edges, gap_report, hold_neutral, segments
+from ..containers import KeyShapes, Poses, Weights
 from ..decompose import GramTake
 from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from ..exceptions import InputError
 from ..io import TrackFile, load_track, open_track
 from ..schemes import stable_points
-from ._pipeline import _fill_hidden, _segments, solve_take
 
 __all__ = ["solve_track_file", "SolvedFile"]
 
-CHUNK = 4096  # frames read, aligned and reduced at a time (about 20 MB of float32 points at 478 landmarks)
+CHUNK = 4096  # frames read and aligned at a time (about 20 MB of float32 points at 478 landmarks)
+_BLOCK_BYTES = 1 << 18  # the regions' points of the frames brought to the canonical frame and reduced at a time
 
 
 @dataclass(frozen=True)
@@ -55,15 +55,17 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
                          f"made from {keys.n_landmarks} in {keys.n_dims}D")
     take = GramTake(keys, 0 if source is None else source.n_frames)
     if source is None or not _all_seen(source, take.landmarks):
+        from ._pipeline import solve_take  # with the key-shape search and tracking code: only this path needs it
+
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
     face = _reduce(source, keys, take, chunk)
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
-    for start, stop in _segments(gaps):  # held gaps split the take, as in solve_take
+    for start, stop in segments(gaps):  # held gaps split the take, as in solve_take
         solved = take.solve(start, stop, upper=upper, smoothness=smoothness, convex=convex)
-        values[start:stop] = _fill_hidden(solved, face[start:stop])
+        values[start:stop] = fill_edges(solved, face[start:stop])
     if smoothness > 0:
         values = hold_neutral(values, gaps)
     return SolvedFile(Weights(values, keys.names, source.fps, source.frame_index, source.time), gaps)
@@ -77,12 +79,15 @@ def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> n
     """Fill ``take`` from the file, chunk by chunk; returns the (n_frames,) bool frames with a face."""
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
     stable = np.asarray(stable) % keys.n_landmarks
-    needed = np.union1d(stable, take.landmarks)  # of the 478 landmarks, the stable and the regions' ones
-    on_stable, on_regions = np.searchsorted(needed, stable), np.searchsorted(needed, take.landmarks)
-    reference = keys.neutral[stable]
+    needed = np.concatenate([stable, take.landmarks])  # of the 478 landmarks, the stable and the regions' ones
+    reference, n_stable = keys.neutral[stable], len(stable)
     face = np.zeros(source.n_frames, dtype=bool)
+    block = max(1, _BLOCK_BYTES // (8 * len(take.landmarks) * keys.n_dims))
     for start, seen, points in source.chunks(needed, frames=chunk):
         face[start : start + len(seen)] = seen
-        poses = procrustes(reference, points[:, on_stable])  # x_image = s R x_canonical + t, per frame
-        take.add(start, to_canonical(points[:, on_regions], poses))
+        poses = procrustes(reference, points[:, :n_stable])  # x_image = s R x_canonical + t, per frame
+        for lo in range(0, len(points), block):  # the regions' points block by block, in a core's cache
+            part = slice(lo, lo + block)
+            pose = Poses(poses.rotations[part], poses.translations[part], poses.scales[part])
+            take.add(start + lo, to_canonical(points[part, n_stable:], pose))
     return face

@@ -8,12 +8,28 @@ however long the video is. :mod:`~keyshape.capture.filters` holds the gap analys
 Euro filter, :mod:`~keyshape.capture.gaze` the eye rotations from the irises.
 """
 
-from ._track import FaceFollower, track_to_file, track_video
-from .filters import GapReport, OneEuro, find_gaps, gap_report, hold_neutral, one_euro
-from .gaze import Gaze, estimate_gaze
-from .mediapipe import BLENDSHAPE_NAMES, MediaPipeTracker, TrackerOptions, default_model_path
-from .video import VideoInfo, iter_frames, probe
+from importlib import import_module
+
+# Each name is imported from its module on first use: a verb that reads only the gap analysis
+# (keyshape solve) does not load the tracker, the decoder and the spool.
+_LAZY = {
+    **dict.fromkeys(("track_video", "track_to_file", "FaceFollower"), "_track"),
+    **dict.fromkeys(("GapReport", "gap_report", "find_gaps", "hold_neutral", "OneEuro", "one_euro"), "filters"),
+    **dict.fromkeys(("Gaze", "estimate_gaze"), "gaze"),
+    **dict.fromkeys(("BLENDSHAPE_NAMES", "MediaPipeTracker", "TrackerOptions", "default_model_path"), "mediapipe"),
+    **dict.fromkeys(("VideoInfo", "iter_frames", "probe"), "video"),
+}
 
 __all__ = ["track_video", "track_to_file", "FaceFollower", "TrackerOptions", "MediaPipeTracker",
            "default_model_path", "BLENDSHAPE_NAMES", "probe", "iter_frames", "VideoInfo",
            "Gaze", "estimate_gaze", "GapReport", "gap_report", "find_gaps", "hold_neutral", "OneEuro", "one_euro"]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module 'keyshape.capture' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted({*globals(), *_LAZY})

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["find_gaps", "GapReport", "gap_report", "OneEuro", "one_euro", "hold_neutral"]
+__all__ = ["find_gaps", "GapReport", "gap_report", "OneEuro", "one_euro", "hold_neutral", "segments", "fill_edges"]
 
 
 def find_gaps(valid: np.ndarray) -> list[tuple[int, int]]:
@@ -80,6 +80,41 @@ def hold_neutral(values: np.ndarray, report: GapReport) -> np.ndarray:
     for start, length in report.held:
         out[start:start + length] = 0.0
     return out
+
+
+def segments(report: GapReport) -> list[tuple[int, int]]:
+    """``(start, stop)`` runs of frames between the held gaps (each starts and ends with a face):
+    a take's solve splits there, since nothing across a held gap is bridged.
+
+    Examples
+    --------
+    >>> segments(gap_report(np.array([1, 1, 0, 0, 0, 1, 0, 1], dtype=bool), max_bridge=1))
+    [(0, 2), (5, 8)]
+    """
+    held = np.zeros(report.n_frames, dtype=bool)
+    for start, length in report.held:
+        held[start:start + length] = True
+    edges = np.flatnonzero(np.diff(np.concatenate([[1], held.astype(np.int8), [1]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
+
+
+def fill_edges(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Weights ``(n_frames, n_keys)`` with a value in every frame that has a face (``valid (n_frames,)``).
+
+    A region hidden (a hand over the mouth) at the start or end of a run of faces has nothing to
+    be bridged from on one side: its weights hold the nearest solved frame's (inside a run the
+    smooth solve has bridged them already; this interpolates any that are left).
+    """
+    missing = valid[:, None] & np.isnan(values)
+    if not missing.any():
+        return values
+    values = values.copy()
+    frames = np.arange(len(values))
+    for k in np.flatnonzero(missing.any(axis=0)):
+        known = np.isfinite(values[:, k])
+        values[missing[:, k], k] = np.interp(frames[missing[:, k]], frames[known], values[known, k]) \
+            if known.any() else 0.0
+    return values
 
 
 def _alpha(cutoff: np.ndarray | float, rate: float) -> np.ndarray:

@@ -9,7 +9,8 @@
 
 Private modules: ``_solve`` (the public functions and their checks), ``_gramtake``, ``_nnls`` and ``_reduced``
 (batched per-frame NNLS), ``_spacetime``, ``_sequence`` and ``_activeset`` (the smoothed solve),
-``_kernels`` and ``_kernels_nnls`` (the numba-compiled kernels; numba is imported only there).
+``_kernels`` and ``_kernels_nnls`` (the numba-compiled kernels; numba is imported only there, on
+the first solve: importing this package is light).
 """
 
 from ._gramtake import GramTake

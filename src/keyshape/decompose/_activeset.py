@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _kernels, _kernels_face
-from ._kernels_nnls import FREE, LOWER, UPPER
+from ._reduced import FREE, LOWER, UPPER
 from ._sequence import Best, EigenSolver, Sequence, hessian_mul, multipliers, objective, project
 
 _HOT = 1e-3  # a frame's residual above this fraction of the largest marks it for a window

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -103,27 +104,44 @@ class GramTake:
         is 0; with smoothing gaps between faces bridged and the frames before the first or
         after the last face NaN.
         """
-        frames = slice(start, self.n_frames if stop is None else stop)
+        stop = self.n_frames if stop is None else stop
         upper = _upper_bounds(upper, self.n_keys)
         smoothness, tol = _check_smoothness(smoothness), _check_tol(tol)
-        valid = self.valid[frames]
+        valid = self.valid[start:stop]
         values = np.zeros((len(valid), self.n_keys))
+        # Without smoothing every frame is its own problem: each region's frames are split in one
+        # part per core, so the threads share the work evenly however the regions' sizes differ.
+        parts = _parts(len(valid), _workers(len(valid)) if smoothness == 0.0 else 1)
+        tasks = [(r, part) for r in self._regions for part in parts]
 
-        def region(r: _Region) -> np.ndarray:
-            return solve_reduced(r.A.T @ r.A, r.C[frames], r.sq[frames], upper[r.keys], smoothness, bool(convex), tol)
+        def task(job: tuple[_Region, slice]) -> np.ndarray:
+            r, part = job
+            rows = slice(start + part.start, start + part.stop)
+            return solve_reduced(r.A.T @ r.A, r.C[rows], r.sq[rows], upper[r.keys], smoothness, bool(convex), tol)
 
-        for r, solved in zip(self._regions, _each(region, self._regions)):
-            values[:, r.keys] = solved
+        for (r, part), solved in zip(tasks, _each(task, tasks, len(valid))):
+            values[part, r.keys] = solved
         if smoothness == 0.0:
             values[~valid] = np.nan
         return values
 
 
-def _each(solve, regions: list[_Region]) -> list[np.ndarray]:
-    """``solve(r)`` for every region, on one thread per core for a long take: the regions are
-    independent problems, and their compiled kernels and BLAS calls release the GIL."""
-    workers = min(len(regions), os.cpu_count() or 1)
-    if workers < 2 or not regions or len(regions[0].C) < _PARALLEL_FRAMES:
-        return [solve(r) for r in regions]
+def _workers(n_frames: int) -> int:
+    """Threads for a take of ``n_frames``: one per core for a long take, else 1."""
+    return (os.cpu_count() or 1) if n_frames >= _PARALLEL_FRAMES else 1
+
+
+def _parts(n_frames: int, n_parts: int) -> list[slice]:
+    """``n_parts`` consecutive slices of about equal size covering ``0 ... n_frames - 1``."""
+    edges = np.linspace(0, n_frames, max(n_parts, 1) + 1).round().astype(int)
+    return [slice(int(a), int(b)) for a, b in pairwise(edges)]
+
+
+def _each(solve, tasks: list, n_frames: int) -> list[np.ndarray]:
+    """``solve(task)`` for every task (a region, or part of one), on one thread per core for a long
+    take: the tasks are independent problems, and their compiled kernels and BLAS calls release the GIL."""
+    workers = min(len(tasks), _workers(n_frames))
+    if workers < 2:
+        return [solve(t) for t in tasks]
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(pool.map(solve, regions))
+        return list(pool.map(solve, tasks))

@@ -10,9 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._kernels import jit
-
-KKT_TOL = 1e-11  # relative tolerance of the KKT tests, here and in keyshape.decompose._nnls
-LOWER, FREE, UPPER = 0, 1, 2  # the state of a variable: at 0, free, at its upper bound
+from ._reduced import FREE, KKT_TOL, LOWER, UPPER  # defined there: _nnls imports numba only to solve
 
 
 @jit

@@ -45,9 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..exceptions import ConvergenceWarning
-from . import _kernels_nnls
-from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER
-from ._reduced import free_solve
+from ._reduced import FREE, KKT_TOL, LOWER, UPPER, free_solve
 
 _RIDGE = 1e-10  # relative ridge added to a rank-deficient G (see Gram)
 _TOL = KKT_TOL  # relative tolerance of the KKT tests
@@ -137,6 +135,8 @@ def box_solve(gram: Gram, C: np.ndarray, upper: np.ndarray, state: np.ndarray):
     X : (n, K) float, the solutions, within ``[0, u]``
     state : (n, K) int8, their classification
     """
+    from . import _kernels_nnls  # numba (half a second to start): imported on the first solve
+
     state = np.array(state, dtype=np.int8, order="C")
     X = np.empty(C.shape)
     bounded = bool(np.isfinite(upper).any())

@@ -14,6 +14,9 @@ import numpy as np
 if TYPE_CHECKING:
     from ._nnls import Gram
 
+KKT_TOL = 1e-11  # relative tolerance of the KKT tests of the per-frame solver (_nnls, _kernels_nnls)
+LOWER, FREE, UPPER = 0, 1, 2  # the state of a variable: at 0, free, at its upper bound
+
 _CHUNK = 2**22  # elements per batched factorisation: bounds the (f, f, n) stack to 32 MB
 _SMALL_BATCH = 48  # below this many systems of one size, LAPACK per system is cheaper
 

@@ -32,8 +32,9 @@ import numpy as np
 from ..containers import KeyShapes, Track, Weights
 from ..exceptions import InputError
 from ._nnls import nnls_gram
-from ._spacetime import spacetime_gram
-from ._weighted import coordinate_weights, solve_weighted
+
+# The smoothed and the weighted solves (_spacetime, _weighted) and the kernels of all solves (numba)
+# are imported on first use: importing keyshape.decompose stays light.
 
 __all__ = ["solve_nnls", "solve_spacetime", "solve_weights", "check_upper"]
 
@@ -230,6 +231,8 @@ def _solve_seen(A, B, track, landmarks, upper, smoothness, convex, tol):
     """One region's weights; hidden landmarks (``track.visibility`` < 1) weighted down (:mod:`._weighted`)."""
     if track.visibility is None or (track.visibility[:, landmarks] >= 1.0).all():
         return _solve_region(A, B, upper, smoothness, convex, tol)  # all seen: the unweighted fast path
+    from ._weighted import coordinate_weights, solve_weighted
+
     weight = coordinate_weights(track.visibility[:, landmarks], track.n_dims)
     return solve_weighted(A, B, weight, lambda b: _solve_region(A, b, upper, smoothness, convex, tol),
                           smoothness=smoothness, upper=upper, convex=convex, mu=_mu(A.T @ A, smoothness))
@@ -263,6 +266,8 @@ def solve_reduced(G, C, sq, upper, smoothness, convex, tol=1e-7):
     mu = _mu(G, smoothness)
     if mu == 0.0:  # all keys are zero: nothing to smooth
         return np.where(valid[:, None], nnls_gram(G, C, upper, convex), np.nan)
+    from ._spacetime import spacetime_gram
+
     return spacetime_gram(G, C, valid, sq, mu, upper, convex, rtol=tol)
 
 

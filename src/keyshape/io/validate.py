@@ -90,11 +90,18 @@ class PointsCheck:
     def __init__(self, path):
         self.path, self.bad, self.large, self.faces, self.n_frames = path, None, None, 0, 0
 
-    def add(self, lo: int, chunk: np.ndarray) -> np.ndarray:
-        """(n,) bool, the frames of ``chunk (n, n_landmarks, d)`` (frames ``lo``...) with a face."""
-        values = chunk if chunk.dtype.kind == "f" else chunk.astype(float)  # float32 tracks: no copy
-        flat = values.reshape(len(values), -1)
-        high, low = flat.max(axis=1), flat.min(axis=1)  # NaN or ±inf where a frame is not all finite
+    @staticmethod
+    def extremes(chunk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The ``(n,)`` largest and smallest values of each frame of ``chunk (n, n_landmarks, d)``
+        (NaN or ±inf where a frame is not all finite), as :meth:`add` needs them."""
+        flat = _as_float(chunk).reshape(len(chunk), -1)
+        return flat.max(axis=1), flat.min(axis=1)
+
+    def add(self, lo: int, chunk: np.ndarray, extremes: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(n,) bool, the frames of ``chunk (n, n_landmarks, d)`` (frames ``lo``...) with a face;
+        ``extremes``: :meth:`extremes` of ``chunk``, if the caller has them already."""
+        flat = _as_float(chunk).reshape(len(chunk), -1)
+        high, low = self.extremes(chunk) if extremes is None else extremes
         face = np.isfinite(high) & np.isfinite(low)
         self.faces += int(face.sum())
         self.n_frames += len(face)
@@ -122,6 +129,10 @@ class PointsCheck:
                                              f"±{MAX_COORDINATE:g} pixels")
         if not self.faces:
             raise _fail(self.path, "points", f"no frame has a face (all {self.n_frames} frames are NaN)")
+
+
+def _as_float(chunk: np.ndarray) -> np.ndarray:
+    return chunk if chunk.dtype.kind == "f" else chunk.astype(float)  # float32 tracks: no copy
 
 
 def _check_fps(path, fps) -> None:
