@@ -43,21 +43,24 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
                      chunk: int = CHUNK) -> SolvedFile:
     """The weights of a track file on ``keys``: :func:`solve_take`'s, without the take in memory.
 
-    The points are streamed in chunks of ``chunk`` frames (:meth:`keyshape.io.track.TrackFile.chunks`)
-    when every landmark of the keyed regions is fully visible; a take with hidden landmarks
-    (visibility below 1), whose weighted solve needs the frames themselves, and a file that
-    cannot be streamed (a landmark CSV) are loaded whole and go through :func:`solve_take`.
-    Options as :func:`solve_take`'s.
+    The points are streamed in chunks of ``chunk`` frames (:meth:`keyshape.io.track.TrackFile.chunks`).
+    A take with hidden landmarks (visibility below 1 in a keyed region, as nearly every real
+    track has) is streamed too, each frame reduced to its weighted Gram form (``Aᵀ V_t A``,
+    ``Aᵀ V_t b_t``, ``b_tᵀ V_t b_t``: :class:`keyshape.decompose.GramTake` with ``weighted``),
+    when smoothed and not ``convex``; otherwise its weighted solve needs the frames themselves,
+    and it is loaded whole and goes through :func:`solve_take`, as a file that cannot be
+    streamed (a landmark CSV) does. Options as :func:`solve_take`'s.
     """
     source = open_track(path)
     if source is not None and (source.n_landmarks != keys.n_landmarks or source.n_dims != keys.n_dims):
         raise InputError(f"the track has {source.n_landmarks} landmarks in {source.n_dims}D but the key set was "
                          f"made from {keys.n_landmarks} in {keys.n_dims}D")
-    take = GramTake(keys, 0 if source is None else source.n_frames)
-    if source is None or not _all_seen(source, take.landmarks):
+    weighted = source is not None and not _all_seen(source, GramTake(keys, 0).landmarks)
+    if source is None or (weighted and (smoothness == 0 or convex)):
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
+    take = GramTake(keys, source.n_frames, weighted=weighted)
     face = _reduce(source, keys, take, chunk)
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
@@ -84,5 +87,6 @@ def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> n
     for start, seen, points in source.chunks(needed, frames=chunk):
         face[start : start + len(seen)] = seen
         poses = procrustes(reference, points[:, on_stable])  # x_image = s R x_canonical + t, per frame
-        take.add(start, to_canonical(points[:, on_regions], poses))
+        visible = None if not take.weighted else source.visibility[start : start + len(seen)][:, take.landmarks]
+        take.add(start, to_canonical(points[:, on_regions], poses), visible)
     return face

@@ -15,7 +15,10 @@ it skipping fixed variables.
 
 from __future__ import annotations
 
+import numpy as np
+
 from ._kernels import jit
+from ._kernels_nnls import block_pivoting
 
 
 @jit
@@ -90,3 +93,79 @@ def violations(X, g, state, upper, x_scale, g_scale, out):
                 out[i, k] = g[i, k] / g_scale
             else:  # at its bound, pulled down
                 out[i, k] = -g[i, k] / g_scale
+
+
+@jit
+def frame_states(G, C, upper, bounded, valid, state):
+    """The active set of every frame's own box QP (no smoothness), ``min ½wᵀG_t w − c_tᵀw``:
+    ``state (T, K)`` (FREE on entry) by block principal pivoting, frame by frame; a frame
+    without data takes the state of the frame before it. A guess to start from: a frame where
+    pivoting stalls keeps where it stopped."""
+    T, K = C.shape
+    X = np.empty((1, K))
+    for t in range(T):
+        if not valid[t]:
+            if t > 0:
+                for k in range(K):
+                    state[t, k] = state[t - 1, k]
+            continue
+        block_pivoting(G[t], C[t : t + 1], upper, bounded, state[t : t + 1], X)
+
+
+@jit
+def compact_index(free, pos):
+    """Number the free variables of ``free (T, K)`` frame-major into ``pos`` (−1 where fixed);
+    returns ``(n_free, kd)``, ``kd`` the half-bandwidth of the face system in that order (a free
+    variable is coupled to the free ones of its frame and to its key in the next two frames)."""
+    T, K = free.shape
+    p = 0
+    for t in range(T):
+        for a in range(K):
+            if free[t, a]:
+                pos[t, a] = p
+                p += 1
+            else:
+                pos[t, a] = -1
+    kd = 0
+    for t in range(T):
+        last = -1
+        for a in range(K):
+            if pos[t, a] > last:
+                last = pos[t, a]
+        for a in range(K):
+            q = pos[t, a]
+            if q < 0:
+                continue
+            reach = last
+            if t + 1 < T and pos[t + 1, a] > reach:
+                reach = pos[t + 1, a]
+            if t + 2 < T and pos[t + 2, a] > reach:
+                reach = pos[t + 2, a]
+            if reach - q > kd:
+                kd = reach - q
+    return p, kd
+
+
+@jit
+def compact_band(G, mu, d0, d1, d2, pos, band):
+    """The face system of the whole take on its free variables only (``pos (T, K)``, their
+    index, −1 where fixed): ``band (n_free, kd + 1)`` with ``band[p, o] = M[p + o, p]`` (its
+    transpose is LAPACK's lower band storage, for ``dpbtrf``)."""
+    T, K = pos.shape
+    W = band.shape[1]
+    for t in range(T):
+        for a in range(K):
+            p = pos[t, a]
+            if p < 0:
+                continue
+            for o in range(W):
+                band[p, o] = 0.0
+            band[p, 0] = G[t, a, a] + mu * d0[t]
+            for b in range(a + 1, K):
+                q = pos[t, b]
+                if q >= 0:
+                    band[p, q - p] = G[t, b, a]
+            if t + 1 < T and pos[t + 1, a] >= 0:
+                band[p, pos[t + 1, a] - p] = mu * d1[t]
+            if t + 2 < T and pos[t + 2, a] >= 0:
+                band[p, pos[t + 2, a] - p] = mu * d2[t]
