@@ -7,10 +7,9 @@ unweighted one: these kernels build and apply it directly, frame-major (``x[t·K
 
 Every kernel works on a sorted list of frames ``rows`` of the take (all of them, or windows
 around the changes of an active-set step) and costs only those: a step on a few windows of a
-long take costs the windows. The band it fills is the layout of
-:func:`keyshape.decompose._kernels.band_factor` and :func:`keyshape.decompose._kernels.band_solve`
-(``band[j, o] = M[j + o, j]``, row ``j = i·K + k`` for frame ``rows[i]``), which factor and solve
-it skipping fixed variables.
+long take costs the windows. A face's system is built on its free variables only, numbered in
+order (:func:`compact_index`, :func:`compact_band`), as a band that LAPACK's banded Cholesky
+(``dpbtrf``) factors: 2–3 times the speed of a compiled loop on a band ``2K`` wide.
 """
 
 from __future__ import annotations
@@ -47,37 +46,6 @@ def hessian_at(G, mu, d0, d1, d2, X, rows, out):
 
 
 @jit
-def face_band(G, mu, d0, d1, d2, free, rows, band):
-    """The lower band ``(len(rows)·K, 2K + 1)`` of the face system on the frames ``rows``.
-
-    ``free (len(rows), K)``: free rows and columns hold ``P`` (couplings to frames not in
-    ``rows`` dropped: they are held), a fixed variable gets ``1`` on the diagonal and no free
-    row or column refers to it.
-    """
-    n, K = free.shape
-    W = 2 * K + 1
-    for i in range(n):
-        t = rows[i]
-        near = i + 1 < n and rows[i + 1] == t + 1
-        far = i + 2 < n and rows[i + 2] == t + 2
-        for a in range(K):
-            j = i * K + a
-            for o in range(W):
-                band[j, o] = 0.0
-            if not free[i, a]:
-                band[j, 0] = 1.0
-                continue
-            for o in range(K - a):
-                if free[i, a + o]:
-                    band[j, o] = G[t, a + o, a]
-            band[j, 0] += mu * d0[t]
-            if near and free[i + 1, a]:
-                band[j, K] = mu * d1[t]
-            if far and free[i + 2, a]:
-                band[j, 2 * K] = mu * d2[t]
-
-
-@jit
 def violations(X, g, state, upper, x_scale, g_scale, out):
     """Dimensionless KKT violations ``out`` of the face solution ``X`` with ``g = c − P X`` (all
     ``(n, K)``, rows of the same frames); positive where the variable changes side in a
@@ -96,76 +64,122 @@ def violations(X, g, state, upper, x_scale, g_scale, out):
 
 
 @jit
-def frame_states(G, C, upper, bounded, valid, state):
-    """The active set of every frame's own box QP (no smoothness), ``min ½wᵀG_t w − c_tᵀw``:
-    ``state (T, K)`` (FREE on entry) by block principal pivoting, frame by frame; a frame
-    without data takes the state of the frame before it. A guess to start from: a frame where
-    pivoting stalls keeps where it stopped."""
+def frame_states(G, C, upper, bounded, valid, state, X):
+    """Every frame's own box QP (no smoothness), ``min ½wᵀG_t w − c_tᵀw``, by block principal
+    pivoting: ``state (T, K)`` (FREE on entry) and ``X (T, K)``, its minimiser within the
+    bounds; a frame without data takes the frame's before it. A start, not a solution: a frame
+    where pivoting stalls keeps where it stopped."""
     T, K = C.shape
-    X = np.empty((1, K))
+    x = np.empty((1, K))
     for t in range(T):
         if not valid[t]:
             if t > 0:
                 for k in range(K):
                     state[t, k] = state[t - 1, k]
+                    X[t, k] = X[t - 1, k]
+            else:
+                for k in range(K):
+                    X[t, k] = 0.0
             continue
-        block_pivoting(G[t], C[t : t + 1], upper, bounded, state[t : t + 1], X)
+        block_pivoting(G[t], C[t : t + 1], upper, bounded, state[t : t + 1], x)
+        for k in range(K):
+            X[t, k] = min(max(x[0, k], 0.0), upper[k])
 
 
 @jit
-def compact_index(free, pos):
-    """Number the free variables of ``free (T, K)`` frame-major into ``pos`` (−1 where fixed);
-    returns ``(n_free, kd)``, ``kd`` the half-bandwidth of the face system in that order (a free
-    variable is coupled to the free ones of its frame and to its key in the next two frames)."""
-    T, K = free.shape
+def frame_sweeps(G, C, mu, d0, d1, d2, upper, bounded, state, X, rows, n_sweeps):
+    """Symmetric block Gauss–Seidel sweeps over the frames ``rows`` of the QP: each frame's box QP
+    ``min wᵀ(G_t + μ d0_t I)w − 2 wᵀ(c_t − μ Σ_s (LᵀL)_{ts} w_s)`` exactly (block principal
+    pivoting from its ``state``), its neighbours ``s`` at their latest values; forward, then
+    backward. Monotone in the objective, and a sweep carries a change along the whole take,
+    where active-set steps move the edge of a run of free weights by about a frame per step."""
+    T, K = C.shape
+    n = rows.shape[0]
+    H = np.empty((K, K))
+    r = np.empty((1, K))
+    x = np.empty((1, K))
+    for sweep in range(2 * n_sweeps):
+        for i in range(n):
+            t = rows[i] if sweep % 2 == 0 else rows[n - 1 - i]
+            for a in range(K):
+                s = 0.0
+                if t >= 1:
+                    s += d1[t - 1] * X[t - 1, a]
+                if t >= 2:
+                    s += d2[t - 2] * X[t - 2, a]
+                if t + 1 < T:
+                    s += d1[t] * X[t + 1, a]
+                if t + 2 < T:
+                    s += d2[t] * X[t + 2, a]
+                r[0, a] = C[t, a] - mu * s
+                for b in range(K):
+                    H[a, b] = G[t, a, b]
+                H[a, a] += mu * d0[t]
+            block_pivoting(H, r, upper, bounded, state[t : t + 1], x)
+            for a in range(K):
+                X[t, a] = min(max(x[0, a], 0.0), upper[a])
+
+
+@jit
+def compact_index(free, rows, pos):
+    """Number the free variables of ``free (n, K)`` (the frames ``rows``) in order into ``pos``
+    (−1 where fixed); returns ``(n_free, kd)``, ``kd`` the half-bandwidth of the face system in
+    that order: a free variable is coupled to the free ones of its frame and to its key in the
+    next two frames (when those are among ``rows``)."""
+    n, K = free.shape
     p = 0
-    for t in range(T):
+    for i in range(n):
         for a in range(K):
-            if free[t, a]:
-                pos[t, a] = p
+            if free[i, a]:
+                pos[i, a] = p
                 p += 1
             else:
-                pos[t, a] = -1
+                pos[i, a] = -1
     kd = 0
-    for t in range(T):
+    for i in range(n):
         last = -1
         for a in range(K):
-            if pos[t, a] > last:
-                last = pos[t, a]
+            if pos[i, a] > last:
+                last = pos[i, a]
+        near = i + 1 < n and rows[i + 1] == rows[i] + 1
+        far = i + 2 < n and rows[i + 2] == rows[i] + 2
         for a in range(K):
-            q = pos[t, a]
+            q = pos[i, a]
             if q < 0:
                 continue
             reach = last
-            if t + 1 < T and pos[t + 1, a] > reach:
-                reach = pos[t + 1, a]
-            if t + 2 < T and pos[t + 2, a] > reach:
-                reach = pos[t + 2, a]
+            if near and pos[i + 1, a] > reach:
+                reach = pos[i + 1, a]
+            if far and pos[i + 2, a] > reach:
+                reach = pos[i + 2, a]
             if reach - q > kd:
                 kd = reach - q
     return p, kd
 
 
 @jit
-def compact_band(G, mu, d0, d1, d2, pos, band):
-    """The face system of the whole take on its free variables only (``pos (T, K)``, their
-    index, −1 where fixed): ``band (n_free, kd + 1)`` with ``band[p, o] = M[p + o, p]`` (its
-    transpose is LAPACK's lower band storage, for ``dpbtrf``)."""
-    T, K = pos.shape
+def compact_band(G, mu, d0, d1, d2, rows, pos, band):
+    """The face system on the free variables of the frames ``rows`` (``pos``, their index from
+    :func:`compact_index`; frames not in ``rows`` are held): ``band (n_free, kd + 1)`` with
+    ``band[p, o] = M[p + o, p]``, whose transpose is LAPACK's lower band storage (``dpbtrf``)."""
+    n, K = pos.shape
     W = band.shape[1]
-    for t in range(T):
+    for i in range(n):
+        t = rows[i]
+        near = i + 1 < n and rows[i + 1] == t + 1
+        far = i + 2 < n and rows[i + 2] == t + 2
         for a in range(K):
-            p = pos[t, a]
+            p = pos[i, a]
             if p < 0:
                 continue
             for o in range(W):
                 band[p, o] = 0.0
             band[p, 0] = G[t, a, a] + mu * d0[t]
             for b in range(a + 1, K):
-                q = pos[t, b]
+                q = pos[i, b]
                 if q >= 0:
                     band[p, q - p] = G[t, b, a]
-            if t + 1 < T and pos[t + 1, a] >= 0:
-                band[p, pos[t + 1, a] - p] = mu * d1[t]
-            if t + 2 < T and pos[t + 2, a] >= 0:
-                band[p, pos[t + 2, a] - p] = mu * d2[t]
+            if near and pos[i + 1, a] >= 0:
+                band[p, pos[i + 1, a] - p] = mu * d1[t]
+            if far and pos[i + 2, a] >= 0:
+                band[p, pos[i + 2, a] - p] = mu * d2[t]

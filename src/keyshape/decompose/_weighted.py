@@ -73,11 +73,13 @@ _WARN_GAP = 1e-4  # a certified gap above this (and 100x the asked one) is repor
 _KKT_TOL = 1e-11  # a dimensionless KKT violation below this is none (as in _activeset)
 LOWER, FREE, UPPER = 0, 1, 2  # the state of a variable
 WINDOW = 40  # frames on either side of the changes of a local phase re-solved exactly at its end
-SMALL = 10  # frames on either side of a change re-solved by each step of a local phase
+SMALL = 20  # frames on either side of a change re-solved by each step of a local phase
 FEW = 100  # a local phase once at most 1 in FEW variables changes on the whole take
 MAX_STEPS = 30  # active-set steps on the whole take
 MAX_LOCAL = 300  # steps of one local phase
 CYCLING = 4  # changes of side after which a variable counts as cycling
+LOCAL_SWEEPS = 0  # ... and over the frames of a local phase first
+SWEEPS = 2  # symmetric Gauss-Seidel sweeps over the frames before the first step
 
 
 def coordinate_weights(seen: np.ndarray, n_dims: int) -> np.ndarray:
@@ -244,7 +246,7 @@ class _Problem:
         d0, d1, d2 = second_difference_gram(n)
         self.d = (d0, np.append(d1, np.zeros(n - len(d1))), np.append(d2, np.zeros(n - len(d2))))
         self.every = np.arange(n)
-        self.buffer = np.empty((n * K, 2 * K + 1))  # the band of the face being solved
+        self.buffer = np.empty((n * K, 2 * K + 1))  # the band of the face being solved (at most this wide)
         self.g_scale = float(np.abs(self.C).max(initial=0.0) + np.abs(self.G).max(initial=0.0) + mu)
 
     def hess(self, X, rows):
@@ -253,42 +255,29 @@ class _Problem:
         self.kw.hessian_at(self.G, self.mu, *self.d, X, rows, out)
         return out
 
-    def solve_whole(self, X, state):
-        """``X`` (in place) on the exact minimiser of the face of the whole take: its free
-        variables numbered in order (:func:`keyshape.decompose._kernels_weighted.compact_index`)
-        and factored by LAPACK's banded Cholesky (``dpbtrf``; 2–3 times the compiled loop's speed
-        on a band this wide)."""
+    def solve(self, X, state, rows):
+        """Frames ``rows`` (sorted) of ``X`` (in place) on the exact minimiser of their face, the
+        other frames held: the free variables numbered in order
+        (:func:`keyshape.decompose._kernels_weighted.compact_index`), their band factored by
+        LAPACK's banded Cholesky (``dpbtrf``)."""
         from scipy.linalg import lapack
 
-        free = state == FREE
+        sub = state[rows]
+        free = sub == FREE
         pos = np.empty(free.shape, np.int64)
-        n_free, kd = self.kw.compact_index(free, pos)
-        held = np.where(state == UPPER, self.top, 0.0)
-        X[:] = held
+        n_free, kd = self.kw.compact_index(free, rows, pos)
+        held = np.where(sub == UPPER, self.top, 0.0)
+        X[rows] = held
         if not n_free:
             return
         band = self.buffer.reshape(-1)[: n_free * (kd + 1)].reshape(n_free, kd + 1)
-        self.kw.compact_band(self.G, self.mu, *self.d, pos, band)
+        self.kw.compact_band(self.G, self.mu, *self.d, rows, pos, band)
         factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)  # band.T: LAPACK's lower storage
         if info != 0:
             raise np.linalg.LinAlgError("banded Cholesky failed on a face: not positive definite")
-        rhs = (self.C - self.hess(X, self.every))[free]
-        x, info = lapack.dpbtrs(factor, rhs, lower=1, overwrite_b=1)
-        X[free] = x
-
-    def solve(self, X, state, rows):
-        """Frames ``rows`` of ``X`` (in place) on the exact minimiser of their face, the others held."""
-        free = state[rows] == FREE
-        band = self.buffer[: free.size]
-        self.kw.face_band(self.G, self.mu, *self.d, free, rows, band)
-        flat = free.reshape(-1)
-        if not self.k0.band_factor(band, flat):
-            raise np.linalg.LinAlgError("banded Cholesky failed on a face: not positive definite")
-        held = np.where(state[rows] == UPPER, self.top, 0.0)
+        x, info = lapack.dpbtrs(factor, (self.C[rows] - self.hess(X, rows))[free], lower=1, overwrite_b=1)
+        held[free] = x
         X[rows] = held
-        r = np.where(free, self.C[rows] - self.hess(X, rows), 0.0)
-        self.k0.band_solve(band, flat, r.reshape(-1))
-        X[rows] = np.where(free, r, held)
 
     def violations(self, X, state, rows):
         """Dimensionless KKT violations ``(len(rows), K)`` on the current face (> 0: changes side)."""
@@ -305,19 +294,22 @@ class _Certificate:
     feasible point (as :func:`keyshape.decompose._sequence.lower_bound`, with this ``P``)."""
 
     def __init__(self, problem: _Problem, const: float):
-        self.problem, self.const = problem, float(const)
+        from scipy.linalg import lapack
+
+        self.problem, self.const, self.lapack = problem, float(const), lapack
         n, K = problem.C.shape
-        self.factor = np.empty_like(problem.buffer)
-        self.ones = np.ones(n * K, bool)
-        problem.kw.face_band(problem.G, problem.mu, *problem.d, self.ones.reshape(n, K), problem.every, self.factor)
-        self.ok = problem.k0.band_factor(self.factor, self.ones)
+        pos = np.empty((n, K), np.int64)
+        n_free, kd = problem.kw.compact_index(np.ones((n, K), bool), problem.every, pos)
+        band = np.empty((n_free, kd + 1))
+        problem.kw.compact_band(problem.G, problem.mu, *problem.d, problem.every, pos, band)
+        self.factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)
+        self.ok = info == 0
         self.F, self.q, self.Z = np.inf, -np.inf, None
 
     def inverse(self, R):
         """``P⁻¹ R`` for ``R (T, K)``."""
-        x = np.array(R, dtype=float, order="C")
-        self.problem.k0.band_solve(self.factor, self.ones, x.reshape(-1))
-        return x
+        x, _ = self.lapack.dpbtrs(self.factor, np.ravel(R), lower=1)
+        return x.reshape(R.shape)
 
     def offer(self, Z):
         """Keep the feasible ``Z`` if it is the best point yet; raise the bound with its
@@ -402,11 +394,16 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
     n, K = problem.C.shape
     valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
     state = np.full((n, K), FREE, np.int8)  # each frame's own active set: near the take's, found in O(T K³)
-    problem.kw.frame_states(problem.G, problem.C, problem.upper, bool(np.isfinite(problem.upper).any()), valid, state)
-    X = np.zeros((n, K))
+    X = np.empty((n, K))
+    bounded = bool(np.isfinite(problem.upper).any())
+    problem.kw.frame_states(problem.G, problem.C, problem.upper, bounded, valid, state, X)
+    if SWEEPS:
+        problem.kw.frame_sweeps(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, state, X,
+                                problem.every, SWEEPS)
+        state = np.where(X <= 0.0, LOWER, np.where(X >= problem.upper, UPPER, FREE)).astype(np.int8)
     damping, cert = _Damping(), None
     for step in range(MAX_STEPS):
-        problem.solve_whole(X, state)  # a face of the whole take: exact everywhere
+        problem.solve(X, state, problem.every)  # a face of the whole take: exact everywhere
         viol = problem.violations(X, state, problem.every)
         count, wrong = _exchange(X, state, problem.every, viol, damping.limit)
         if count == 0:  # the KKT conditions hold: the optimum (to rounding)
@@ -431,11 +428,21 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
     return cert.Z, cert.gap
 
 
+_DEBUG = False
+
+
 def _local(problem, X, state, hot, trace=None):
     """Active-set steps on the frames within :data:`SMALL` of the latest changes, the rest of
     the take held, until none is left; then one exact face on the frames within
     :data:`WINDOW` of every change, and again should that find more (``X``, ``state`` in place)."""
     n = len(X)
+    if LOCAL_SWEEPS:  # block Gauss-Seidel first: it carries the edges of runs of free weights far in a sweep
+        rows = _around(hot, WINDOW, n)
+        sub = np.where(state[rows] == FREE, X[rows], np.where(state[rows] == UPPER, problem.top, 0.0))
+        X[rows] = np.clip(sub, 0.0, problem.upper)
+        problem.kw.frame_sweeps(problem.G, problem.C, problem.mu, *problem.d, problem.upper,
+                                bool(np.isfinite(problem.upper).any()), state, X, rows, LOCAL_SWEEPS)
+        state[rows] = np.where(X[rows] <= 0.0, LOWER, np.where(X[rows] >= problem.upper, UPPER, FREE))
     moving = _around(hot, SMALL, n)
     touched = np.zeros(n, bool)
     touched[hot] = True
@@ -444,9 +451,13 @@ def _local(problem, X, state, hot, trace=None):
         problem.solve(X, state, moving)
         check = _around(moving, 2, n)  # the frames whose KKT conditions the step changed
         viol = problem.violations(X, state, check)
+        _old = state[check].copy()
         count, wrong = _exchange(X, state, check, viol, flips=flips)
         if trace is not None:
             trace.append((len(moving), count))
+            if _DEBUG:
+                ch = np.argwhere(state[check] != _old)
+                trace.append(("changes", [(int(check[a]), int(b), int(_old[a, b]), int(state[check][a, b]), round(float(X[check[a], b]), 4)) for a, b in ch[:6]]))
         if count == 0:
             if final:
                 return
