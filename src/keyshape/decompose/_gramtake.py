@@ -119,10 +119,11 @@ class GramTake:
                 continue
             v = np.ones((len(points), region.H.shape[0])) if seen is None else np.asarray(seen[:, region.span], float)
             region.hidden[0] = region.hidden[0] or bool((v[face] < 1.0).any())
-            region.gone[start:stop] = v.mean(axis=1) < HIDDEN
-            v = np.where(face[:, None], v, 0.0)
+            gone = v.mean(axis=1) < HIDDEN
+            region.gone[start:stop] = gone
+            v = np.where((face & ~gone)[:, None], v, 0.0)  # no data term: G_t, c_t and b_tᵀV_tb_t all 0
             B = np.where(face[:, None], B, 0.0)
-            Bv = np.repeat(v, B.shape[1] // v.shape[1], axis=1) * B  # V_t b_t
+            Bv = (B.reshape(len(v), v.shape[1], -1) * v[:, :, None]).reshape(B.shape)  # V_t b_t
             region.C[start:stop], region.sq[start:stop] = Bv @ region.A, np.einsum("fm,fm->f", Bv, B)
             region.G[start:stop] = (v @ region.H).reshape(-1, *region.G.shape[1:])
         self.valid[start:stop] = face

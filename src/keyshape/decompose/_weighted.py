@@ -79,6 +79,7 @@ MAX_STEPS = 30  # active-set steps on the whole take
 MAX_LOCAL = 300  # steps of one local phase
 CYCLING = 4  # changes of side after which a variable counts as cycling
 LOCAL_SWEEPS = 0  # ... and over the frames of a local phase first
+FRAME_STATES = True
 SWEEPS = 2  # symmetric Gauss-Seidel sweeps over the frames before the first step
 
 
@@ -161,8 +162,9 @@ def solve_weighted_gram(G: np.ndarray, C: np.ndarray, sq: np.ndarray, valid: np.
         return out
     span = slice(rows[0], rows[-1] + 1)  # gaps inside are bridged, the ends are not extrapolated
     seen = valid[span]
-    Gs = np.where(seen[:, None, None], G[span], 0.0)
-    Cs = np.where(seen[:, None], C[span], 0.0)
+    Gs, Cs = np.ascontiguousarray(G[span], dtype=float), np.ascontiguousarray(C[span], dtype=float)
+    if not seen.all() and (Gs[~seen].any() or Cs[~seen].any()):  # frames without data: no data term
+        Gs, Cs = np.where(seen[:, None, None], Gs, 0.0), np.where(seen[:, None], Cs, 0.0)
     const = float(np.sum(sq[span][seen]))
     if len(seen) < 3:  # no second difference: frame by frame
         for i in range(len(seen)):
@@ -246,8 +248,9 @@ class _Problem:
         d0, d1, d2 = second_difference_gram(n)
         self.d = (d0, np.append(d1, np.zeros(n - len(d1))), np.append(d2, np.zeros(n - len(d2))))
         self.every = np.arange(n)
-        self.buffer = np.empty((n * K, 2 * K + 1))  # the band of the face being solved (at most this wide)
-        self.g_scale = float(np.abs(self.C).max(initial=0.0) + np.abs(self.G).max(initial=0.0) + mu)
+        self.buffer = np.empty(0)  # the band of the face being solved, grown as needed (first touch is not free)
+        diagonal = np.einsum("tkk->tk", self.G)  # |G_ij| <= max(G_ii, G_jj): G_t is positive semi-definite
+        self.g_scale = float(np.abs(self.C).max(initial=0.0) + diagonal.max(initial=0.0) + mu)
 
     def hess(self, X, rows):
         """``(P X)`` on the frames ``rows``: ``(len(rows), K)``."""
@@ -270,7 +273,9 @@ class _Problem:
         X[rows] = held
         if not n_free:
             return
-        band = self.buffer.reshape(-1)[: n_free * (kd + 1)].reshape(n_free, kd + 1)
+        if self.buffer.size < n_free * (kd + 1):
+            self.buffer = np.empty(n_free * (kd + 1))
+        band = self.buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
         self.kw.compact_band(self.G, self.mu, *self.d, rows, pos, band)
         factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)  # band.T: LAPACK's lower storage
         if info != 0:
@@ -396,7 +401,10 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
     state = np.full((n, K), FREE, np.int8)  # each frame's own active set: near the take's, found in O(T K³)
     X = np.empty((n, K))
     bounded = bool(np.isfinite(problem.upper).any())
-    problem.kw.frame_states(problem.G, problem.C, problem.upper, bounded, valid, state, X)
+    if FRAME_STATES:
+        problem.kw.frame_states(problem.G, problem.C, problem.upper, bounded, valid, state, X)
+    else:
+        X[:] = 0.0
     if SWEEPS:
         problem.kw.frame_sweeps(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, state, X,
                                 problem.every, SWEEPS)
