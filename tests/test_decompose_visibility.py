@@ -249,3 +249,12 @@ def test_a_stopped_solve_warns_and_stays_feasible(monkeypatch):
         X = weighted.solve_weighted_gram(weighted.weighted_gram(A, v), (v * B0) @ A,
                                          np.einsum("fm,fm->f", v * B0, B0), seen, mu, upper, tol=1e-12)
     assert np.isfinite(X).all() and (X >= 0).all() and (X <= 1).all()
+    # the duality gap it reports bounds how far it really is from the optimum
+    G, C, sq = weighted.weighted_gram(A, v), (v * B0) @ A, np.einsum("fm,fm->f", v * B0, B0)
+    stopped, gap = weighted._exact(G, C, float(sq.sum()), mu, upper, tol=1e-12, valid=seen)
+    monkeypatch.setattr(weighted, "MAX_STEPS", 30)
+    monkeypatch.setattr(weighted, "FEW", 100)
+    best, zero = weighted._exact(G, C, float(sq.sum()), mu, upper, tol=1e-12, valid=seen)
+    Bh = np.where(seen[:, None], B, np.nan)
+    F, F_star = _objective(A, Bh, weight, stopped, mu), _objective(A, Bh, weight, best, mu)
+    assert zero == 0.0 and 1e-9 < (F - F_star) / F <= gap * (1 + 1e-6) + 1e-12

@@ -15,23 +15,35 @@ region is carried by the smoothness term from the frames around it, as a gap is.
   gaps (NaN rows), bridged exactly by the smoothed solve (NaN weights without smoothing).
 * Without smoothing, every partly hidden frame is solved exactly on its own Gram matrix
   ``Aᵀ V_t A``.
-* With smoothing (and no ``Σw ≤ 1``) the QP is solved in Gram form: ``G_t = Aᵀ V_t A`` (one
-  matrix product for all frames, :func:`weighted_gram`), ``c_t = Aᵀ V_t b_t`` and
-  ``b_tᵀ V_t b_t`` are all it reads of the frames, so a long take can be reduced chunk by chunk
+* With smoothing (and no ``Σw ≤ 1``) the QP is solved exactly in Gram form: ``G_t = Aᵀ V_t A``
+  (one matrix product for all frames, :func:`weighted_gram`), ``c_t = Aᵀ V_t b_t`` and
+  ``b_tᵀ V_t b_t`` are all it reads of the frames, so a long take is reduced chunk by chunk
   (:class:`keyshape.decompose.GramTake`). :func:`solve_weighted_gram` runs primal–dual
   active-set steps (Hintermüller, Ito & Kunisch 2003) on the banded Hessian
-  ``P = blockdiag(G_t) + μ LᵀL ⊗ I`` (bandwidth ``2K``, frames in order; each step one banded
-  Cholesky factorisation of its free variables), certified by a duality gap as the unweighted
-  solve is (``tol``, 1e-7 by default; the bound needs ``P⁻¹``, one factorisation of the whole
-  ``P``, which also gives the first point, the unconstrained smooth fit). Steps on the whole
-  take leave few changes after two or three; then *local* steps re-solve only the frames within
-  :data:`SMALL` of the latest changes, the rest held, until none is left, and one exact face on
-  the frames within :data:`WINDOW` of every change closes the phase. In weakly seen stretches
-  a run of free weights grows by about one frame per step (a weight at a bound is released only
-  once its neighbour is free, and near-duplicate keys trade places frame by frame): local steps
-  make those runs cost their own frames, not the take's. A variable that goes back and forth
-  (:data:`CYCLING` changes) moves only as the largest violation of its window, which breaks
-  the cycles of degenerate faces.
+  ``P = blockdiag(G_t) + μ LᵀL ⊗ I`` (bandwidth ``2K``, frames in order): each step fixes the
+  variables at their bounds and solves the free ones exactly, one banded Cholesky factorisation
+  of the free variables only (LAPACK's ``dpbtrf``), then moves every variable that breaks a KKT
+  condition to the other side.
+
+  - The first active set is every frame's own (its box QP without the smoothness, block
+    principal pivoting), then two symmetric block Gauss–Seidel sweeps over the frames (each
+    frame's box QP with its neighbours held): a sweep carries a change along the whole take.
+    (The unconstrained smooth fit ``P⁻¹c``, clipped, is a far worse start where keys are near
+    duplicates: its weights swing far outside the box, eight steps instead of three.)
+  - Once at most one variable in :data:`FEW` changes, *local* steps re-solve only the frames
+    within :data:`SMALL` of the latest changes, the rest held, until none is left, and one
+    exact face on the frames within :data:`WINDOW` of every change closes the phase. In weakly
+    seen stretches and along runs of weights at a bound the exchanges move the edge of a run
+    by about a frame per step (the second difference couples a frame to the one two away with
+    the wrong sign for a faster release): local steps make those runs cost their frames, not
+    the take's. A variable that goes back and forth (:data:`CYCLING` changes) then moves only
+    as the largest violation of its window, which breaks the cycles of degenerate faces.
+  - The answer is exact: the steps end on a face of the whole take whose solution meets every
+    KKT condition (to ``1e-11``, dimensionless). Should they be slow (damped, or past half of
+    :data:`MAX_STEPS`), the whole ``P`` is factored once more for a duality bound,
+    ``q(y) = const − (c − y)ᵀP⁻¹(c − y) − 2σ_C(y) ≤ F*``, and a relative gap of ``tol``
+    (1e-7 by default) ends them as it ends the unweighted solve; above ``max(1e-4, 100 tol)``
+    a ConvergenceWarning says so.
 * Otherwise (``Σw ≤ 1``, or a ``P`` that is not positive definite), majorise-minimise
   (Kiers 1997; Srebro & Jaakkola 2003): as ``V_t ⪯ I``,
   ``‖V_t^{1/2}(A w − b_t)‖² ≤ ‖A w − \\tilde b_t‖² + const`` with the hidden part filled in from
@@ -78,9 +90,7 @@ FEW = 100  # a local phase once at most 1 in FEW variables changes on the whole 
 MAX_STEPS = 30  # active-set steps on the whole take
 MAX_LOCAL = 300  # steps of one local phase
 CYCLING = 4  # changes of side after which a variable counts as cycling
-LOCAL_SWEEPS = 0  # ... and over the frames of a local phase first
-FRAME_STATES = True
-SWEEPS = 2  # symmetric Gauss-Seidel sweeps over the frames before the first step
+SWEEPS = 2  # symmetric block Gauss-Seidel sweeps over the frames before the first step
 
 
 def coordinate_weights(seen: np.ndarray, n_dims: int) -> np.ndarray:
@@ -391,20 +401,17 @@ def _around(frames, reach, n):
 
 def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
     """Minimiser ``(T, K)`` of the weighted smoothed QP in Gram form and its certified relative
-    gap (0 where the active set is proven by the KKT conditions of a face of the whole take), or
-    None when ``P`` is not positive definite (see the module notes). ``valid``: the frames with
-    data (default: those with a nonzero ``G_t``). ``trace``: a list that gets one entry per step
-    on the whole take and per local step (for the benchmarks)."""
+    gap: 0 when a face of the whole take meets the KKT conditions (the exact optimum), else the
+    duality gap (see the module notes); LinAlgError when ``P`` is not positive definite.
+    ``valid``: the frames with data (default: those with a nonzero ``G_t``). ``trace``: a list
+    that gets one entry per step on the whole take and per local step (for the benchmarks)."""
     problem = _Problem(G, C, mu, upper)
     n, K = problem.C.shape
     valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
     state = np.full((n, K), FREE, np.int8)  # each frame's own active set: near the take's, found in O(T K³)
     X = np.empty((n, K))
     bounded = bool(np.isfinite(problem.upper).any())
-    if FRAME_STATES:
-        problem.kw.frame_states(problem.G, problem.C, problem.upper, bounded, valid, state, X)
-    else:
-        X[:] = 0.0
+    problem.kw.frame_states(problem.G, problem.C, problem.upper, bounded, valid, state, X)
     if SWEEPS:
         problem.kw.frame_sweeps(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, state, X,
                                 problem.every, SWEEPS)
@@ -436,21 +443,11 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
     return cert.Z, cert.gap
 
 
-_DEBUG = False
-
-
 def _local(problem, X, state, hot, trace=None):
     """Active-set steps on the frames within :data:`SMALL` of the latest changes, the rest of
     the take held, until none is left; then one exact face on the frames within
     :data:`WINDOW` of every change, and again should that find more (``X``, ``state`` in place)."""
     n = len(X)
-    if LOCAL_SWEEPS:  # block Gauss-Seidel first: it carries the edges of runs of free weights far in a sweep
-        rows = _around(hot, WINDOW, n)
-        sub = np.where(state[rows] == FREE, X[rows], np.where(state[rows] == UPPER, problem.top, 0.0))
-        X[rows] = np.clip(sub, 0.0, problem.upper)
-        problem.kw.frame_sweeps(problem.G, problem.C, problem.mu, *problem.d, problem.upper,
-                                bool(np.isfinite(problem.upper).any()), state, X, rows, LOCAL_SWEEPS)
-        state[rows] = np.where(X[rows] <= 0.0, LOWER, np.where(X[rows] >= problem.upper, UPPER, FREE))
     moving = _around(hot, SMALL, n)
     touched = np.zeros(n, bool)
     touched[hot] = True
@@ -459,13 +456,9 @@ def _local(problem, X, state, hot, trace=None):
         problem.solve(X, state, moving)
         check = _around(moving, 2, n)  # the frames whose KKT conditions the step changed
         viol = problem.violations(X, state, check)
-        _old = state[check].copy()
         count, wrong = _exchange(X, state, check, viol, flips=flips)
         if trace is not None:
             trace.append((len(moving), count))
-            if _DEBUG:
-                ch = np.argwhere(state[check] != _old)
-                trace.append(("changes", [(int(check[a]), int(b), int(_old[a, b]), int(state[check][a, b]), round(float(X[check[a], b]), 4)) for a, b in ch[:6]]))
         if count == 0:
             if final:
                 return
