@@ -5,7 +5,10 @@ frames of 478 points are 1.15 GB each in float64), though the solvers read of ea
 ``c_t = Aᵀ b_t`` and ``‖b_t‖²`` per region (:class:`keyshape.decompose.GramTake`). Here a chunk
 of frames at a time is read, aligned on the stable points (Umeyama, batched), brought into the
 canonical frame on the regions' landmarks only, and reduced; then the whole take is solved on
-the reduced data, exactly as :func:`solve_take` solves it.
+the reduced data, exactly as :func:`solve_take` solves it. A take with hidden landmarks (real
+tracks read a few percent hidden nearly everywhere) keeps per frame its weighted Gram form
+instead, ``Aᵀ V_t A``, ``Aᵀ V_t b_t`` and ``b_tᵀ V_t b_t`` (``K² + K + 1`` numbers), which is all
+the smoothed weighted solve reads.
 """
 
 from __future__ import annotations
