@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._kernels import jit
-from ._kernels_nnls import block_pivoting
+from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER, _subspace_minimiser
 
 
 @jit
@@ -64,40 +64,84 @@ def violations(X, g, state, upper, x_scale, g_scale, out):
 
 
 @jit
+def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
+    """``min ½xᵀGx − cᵀx`` s.t. ``0 ≤ x ≤ u`` by block principal pivoting from the state ``s``
+    (updated in place), as :func:`keyshape.decompose._kernels_nnls.block_pivoting` does for one
+    row, on the caller's work arrays; ``x`` gets the last subspace minimiser (clipped). A start
+    for the QP of the take, not a solution: a row where the exchanges stall keeps where it stopped."""
+    K = c.shape[0]
+    g_max, c_max = 0.0, 0.0
+    for i in range(K):
+        c_max = max(c_max, abs(c[i]))
+        for j in range(K):
+            g_max = max(g_max, abs(G[i, j]))
+    best, budget = K + 1, 3
+    for _ in range(2 * K + 10):
+        if not _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
+            break
+        scale = 1.0
+        for i in range(K):
+            scale = max(scale, 1.0 + abs(x[i]))
+        tol_x, tol_y = KKT_TOL * scale, KKT_TOL * (c_max + g_max * scale)
+        n_bad = 0
+        for i in range(K):  # the exchange: rhs[i] marks a variable that changes side
+            if s[i] == FREE:
+                b = x[i] < -tol_x or (bounded and x[i] > upper[i] + tol_x)
+            else:
+                y = -c[i]
+                for j in range(K):
+                    y += G[i, j] * x[j]
+                b = y > tol_y if s[i] == UPPER else y < -tol_y
+            idx[i] = 1 if b else 0
+            n_bad += b
+        if n_bad == 0:
+            break
+        if n_bad < best:
+            best, budget = n_bad, 3
+        else:
+            budget -= 1
+            if budget < 0:
+                break
+        for i in range(K):
+            if idx[i]:
+                if s[i] == FREE:
+                    s[i] = LOWER if x[i] < 0.0 else UPPER
+                else:
+                    s[i] = FREE
+    for i in range(K):
+        x[i] = min(max(x[i], 0.0), upper[i])
+
+
+@jit
 def frame_states(G, C, upper, bounded, valid, state, X):
     """Every frame's own box QP (no smoothness), ``min ½wᵀG_t w − c_tᵀw``, by block principal
     pivoting: ``state (T, K)`` (FREE on entry) and ``X (T, K)``, its minimiser within the
-    bounds; a frame without data takes the frame's before it. A start, not a solution: a frame
-    where pivoting stalls keeps where it stopped."""
+    bounds; a frame without data takes the frame's before it. A start, not a solution."""
     T, K = C.shape
-    x = np.empty((1, K))
+    L = np.zeros((K, K))
+    rhs, idx = np.empty(K), np.empty(K, np.int64)
     for t in range(T):
         if not valid[t]:
-            if t > 0:
-                for k in range(K):
-                    state[t, k] = state[t - 1, k]
-                    X[t, k] = X[t - 1, k]
-            else:
-                for k in range(K):
-                    X[t, k] = 0.0
+            for k in range(K):
+                state[t, k] = state[t - 1, k] if t > 0 else FREE
+                X[t, k] = X[t - 1, k] if t > 0 else 0.0
             continue
-        block_pivoting(G[t], C[t : t + 1], upper, bounded, state[t : t + 1], x)
-        for k in range(K):
-            X[t, k] = min(max(x[0, k], 0.0), upper[k])
+        _box_qp(G[t], C[t], upper, bounded, state[t], X[t], L, rhs, idx)
 
 
 @jit
 def frame_sweeps(G, C, mu, d0, d1, d2, upper, bounded, state, X, rows, n_sweeps):
     """Symmetric block Gauss–Seidel sweeps over the frames ``rows`` of the QP: each frame's box QP
-    ``min wᵀ(G_t + μ d0_t I)w − 2 wᵀ(c_t − μ Σ_s (LᵀL)_{ts} w_s)`` exactly (block principal
-    pivoting from its ``state``), its neighbours ``s`` at their latest values; forward, then
-    backward. Monotone in the objective, and a sweep carries a change along the whole take,
-    where active-set steps move the edge of a run of free weights by about a frame per step."""
+    ``min wᵀ(G_t + μ d0_t I)w − 2 wᵀ(c_t − μ Σ_s (LᵀL)_{ts} w_s)`` (block principal pivoting
+    from its ``state``), its neighbours ``s`` at their latest values; forward, then backward.
+    Monotone in the objective, and a sweep carries a change along the whole take, where
+    active-set steps move the edge of a run of free weights by about a frame per step."""
     T, K = C.shape
     n = rows.shape[0]
     H = np.empty((K, K))
-    r = np.empty((1, K))
-    x = np.empty((1, K))
+    r = np.empty(K)
+    L = np.zeros((K, K))
+    rhs, idx = np.empty(K), np.empty(K, np.int64)
     for sweep in range(2 * n_sweeps):
         for i in range(n):
             t = rows[i] if sweep % 2 == 0 else rows[n - 1 - i]
@@ -111,13 +155,11 @@ def frame_sweeps(G, C, mu, d0, d1, d2, upper, bounded, state, X, rows, n_sweeps)
                     s += d1[t] * X[t + 1, a]
                 if t + 2 < T:
                     s += d2[t] * X[t + 2, a]
-                r[0, a] = C[t, a] - mu * s
+                r[a] = C[t, a] - mu * s
                 for b in range(K):
                     H[a, b] = G[t, a, b]
                 H[a, a] += mu * d0[t]
-            block_pivoting(H, r, upper, bounded, state[t : t + 1], x)
-            for a in range(K):
-                X[t, a] = min(max(x[0, a], 0.0), upper[a])
+            _box_qp(H, r, upper, bounded, state[t], X[t], L, rhs, idx)
 
 
 @jit

@@ -258,7 +258,9 @@ class _Problem:
         d0, d1, d2 = second_difference_gram(n)
         self.d = (d0, np.append(d1, np.zeros(n - len(d1))), np.append(d2, np.zeros(n - len(d2))))
         self.every = np.arange(n)
-        self.buffer = np.empty(0)  # the band of the face being solved, grown as needed (first touch is not free)
+        # the band of the face being solved: room for every variable free, but only the pages a face
+        # uses are ever touched (first touch costs a page fault; a buffer allocated anew would pay again)
+        self.buffer = np.empty(n * K * (2 * K + 1))
         diagonal = np.einsum("tkk->tk", self.G)  # |G_ij| <= max(G_ii, G_jj): G_t is positive semi-definite
         self.g_scale = float(np.abs(self.C).max(initial=0.0) + diagonal.max(initial=0.0) + mu)
 
@@ -283,8 +285,6 @@ class _Problem:
         X[rows] = held
         if not n_free:
             return
-        if self.buffer.size < n_free * (kd + 1):
-            self.buffer = np.empty(n_free * (kd + 1))
         band = self.buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
         self.kw.compact_band(self.G, self.mu, *self.d, rows, pos, band)
         factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)  # band.T: LAPACK's lower storage
