@@ -138,18 +138,19 @@ def _kkt(A, B, weight, X, mu, upper):
                grad[X >= upper - 1e-9].max(initial=0.0)) / scale
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_exact_weighted_smoothed_solve_is_the_optimum(seed):
+@pytest.mark.parametrize("seed, bound", [(0, 1.0), (1, 1.0), (2, 1.0), (3, np.inf)])
+def test_exact_weighted_smoothed_solve_is_the_optimum(seed, bound):
     """The exact solve of the weighted smoothed QP (in Gram form) meets its KKT conditions, matches
-    an independent QP solver (Clarabel) and is no worse than majorise-minimise."""
+    an independent QP solver (Clarabel) and is no worse than majorise-minimise (also unbounded above)."""
     from keyshape.decompose._solve import _mu, _solve_region
     from keyshape.decompose._weighted import _majorise, solve_weighted
 
     A, B, weight, upper = _weighted_problem(seed)
+    upper = np.full_like(upper, bound)
     mu = _mu(A.T @ A, 0.1)
     solve = lambda b: _solve_region(A, b, upper, 0.1, False)  # noqa: E731
     X = solve_weighted(A, B, weight, solve, smoothness=0.1, upper=upper, convex=False, mu=mu)
-    assert (X >= 0).all() and (X <= 1).all()
+    assert (X >= 0).all() and (X <= upper).all() and (X > 1).any() == (bound > 1)
     assert _kkt(A, B, weight, X, mu, upper) < 1e-6
     # against majorise-minimise from the unweighted solve, and against Clarabel on the whole QP
     partial = np.flatnonzero(np.isfinite(B).all(axis=1) & (weight < 1).any(axis=1))
