@@ -21,49 +21,6 @@ from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER, _subspace_minimiser
 
 
 @jit
-def hessian_at(G, mu, d0, d1, d2, X, rows, out):
-    """``out[i] = (P X)_t = G_t x_t + μ (LᵀL X)_t`` for the frames ``t = rows[i]``.
-
-    ``G (T, K, K)``, ``X (T, K)``; ``d0, d1, d2 (T,)`` the diagonals of ``LᵀL``, zero-padded.
-    """
-    T, K = X.shape
-    for i in range(rows.shape[0]):
-        t = rows[i]
-        for k in range(K):
-            s = 0.0
-            for m in range(K):
-                s += G[t, k, m] * X[t, m]
-            r = d0[t] * X[t, k]
-            if t >= 1:
-                r += d1[t - 1] * X[t - 1, k]
-            if t >= 2:
-                r += d2[t - 2] * X[t - 2, k]
-            if t + 1 < T:
-                r += d1[t] * X[t + 1, k]
-            if t + 2 < T:
-                r += d2[t] * X[t + 2, k]
-            out[i, k] = s + mu * r
-
-
-@jit
-def violations(X, g, state, upper, x_scale, g_scale, out):
-    """Dimensionless KKT violations ``out`` of the face solution ``X`` with ``g = c − P X`` (all
-    ``(n, K)``, rows of the same frames); positive where the variable changes side in a
-    primal–dual active-set step. ``state``: 0 at the lower bound, 1 free, 2 at the upper one.
-    """
-    n, K = X.shape
-    for i in range(n):
-        for k in range(K):
-            s = state[i, k]
-            if s == 1:  # free: out of its box
-                out[i, k] = max(-X[i, k], X[i, k] - upper[k]) / x_scale
-            elif s == 0:  # at 0, pulled up (∇F/2 = −g < 0)
-                out[i, k] = g[i, k] / g_scale
-            else:  # at its bound, pulled down
-                out[i, k] = -g[i, k] / g_scale
-
-
-@jit
 def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
     """``min ½xᵀGx − cᵀx`` s.t. ``0 ≤ x ≤ u`` by block principal pivoting from the state ``s``
     (updated in place), as :func:`keyshape.decompose._kernels_nnls.block_pivoting` does for one
@@ -113,10 +70,17 @@ def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
 
 
 @jit
-def frame_states(G, C, upper, bounded, valid, state, X):
-    """Every frame's own box QP (no smoothness), ``min ½wᵀG_t w − c_tᵀw``, by block principal
-    pivoting: ``state (T, K)`` (FREE on entry) and ``X (T, K)``, its minimiser within the
-    bounds; a frame without data takes the frame's before it. A start, not a solution."""
+def start(G, C, mu, d0, d1, d2, upper, bounded, valid, state, X, n_sweeps):
+    """A first point ``X (T, K)`` and its active set ``state`` (FREE on entry).
+
+    Every frame's own box QP first (no smoothness), ``min ½wᵀG_t w − c_tᵀw``, by block
+    principal pivoting (a frame without data takes the frame's before it); then ``n_sweeps``
+    symmetric block Gauss–Seidel sweeps over the frames of the whole QP: each frame's box QP
+    ``min wᵀ(G_t + μ d0_t I)w − 2 wᵀ(c_t − μ Σ_s (LᵀL)_{ts} w_s)``, its neighbours ``s`` at their
+    latest values, forward, then backward. Monotone in the objective, and a sweep carries a
+    change along the whole take, where active-set steps move the edge of a run of free weights
+    by about a frame per step. A start, not a solution.
+    """
     T, K = C.shape
     L = np.zeros((K, K))
     rhs, idx = np.empty(K), np.empty(K, np.int64)
@@ -127,24 +91,11 @@ def frame_states(G, C, upper, bounded, valid, state, X):
                 X[t, k] = X[t - 1, k] if t > 0 else 0.0
             continue
         _box_qp(G[t], C[t], upper, bounded, state[t], X[t], L, rhs, idx)
-
-
-@jit
-def frame_sweeps(G, C, mu, d0, d1, d2, upper, bounded, state, X, rows, n_sweeps):
-    """Symmetric block Gauss–Seidel sweeps over the frames ``rows`` of the QP: each frame's box QP
-    ``min wᵀ(G_t + μ d0_t I)w − 2 wᵀ(c_t − μ Σ_s (LᵀL)_{ts} w_s)`` (block principal pivoting
-    from its ``state``), its neighbours ``s`` at their latest values; forward, then backward.
-    Monotone in the objective, and a sweep carries a change along the whole take, where
-    active-set steps move the edge of a run of free weights by about a frame per step."""
-    T, K = C.shape
-    n = rows.shape[0]
     H = np.empty((K, K))
     r = np.empty(K)
-    L = np.zeros((K, K))
-    rhs, idx = np.empty(K), np.empty(K, np.int64)
     for sweep in range(2 * n_sweeps):
-        for i in range(n):
-            t = rows[i] if sweep % 2 == 0 else rows[n - 1 - i]
+        for i in range(T):
+            t = i if sweep % 2 == 0 else T - 1 - i
             for a in range(K):
                 s = 0.0
                 if t >= 1:
@@ -160,19 +111,61 @@ def frame_sweeps(G, C, mu, d0, d1, d2, upper, bounded, state, X, rows, n_sweeps)
                     H[a, b] = G[t, a, b]
                 H[a, a] += mu * d0[t]
             _box_qp(H, r, upper, bounded, state[t], X[t], L, rhs, idx)
+    for t in range(T):
+        for k in range(K):
+            state[t, k] = LOWER if X[t, k] <= 0.0 else (UPPER if X[t, k] >= upper[k] else FREE)
 
 
 @jit
-def compact_index(free, rows, pos):
-    """Number the free variables of ``free (n, K)`` (the frames ``rows``) in order into ``pos``
-    (−1 where fixed); returns ``(n_free, kd)``, ``kd`` the half-bandwidth of the face system in
-    that order: a free variable is coupled to the free ones of its frame and to its key in the
-    next two frames (when those are among ``rows``)."""
-    n, K = free.shape
+def _product(G, mu, d0, d1, d2, X, t, k):
+    """``(P X)_{t,k} = (G_t x_t)_k + μ (LᵀL X)_{t,k}``."""
+    T, K = X.shape
+    s = 0.0
+    for m in range(K):
+        s += G[t, k, m] * X[t, m]
+    r = d0[t] * X[t, k]
+    if t >= 1:
+        r += d1[t - 1] * X[t - 1, k]
+    if t >= 2:
+        r += d2[t - 2] * X[t - 2, k]
+    if t + 1 < T:
+        r += d1[t] * X[t + 1, k]
+    if t + 2 < T:
+        r += d2[t] * X[t + 2, k]
+    return s + mu * r
+
+
+@jit
+def hessian_at(G, mu, d0, d1, d2, X, rows, out):
+    """``out[i] = (P X)_t`` for the frames ``t = rows[i]``; ``G (T, K, K)``, ``X (T, K)``;
+    ``d0, d1, d2 (T,)`` the diagonals of ``LᵀL``, zero-padded."""
+    for i in range(rows.shape[0]):
+        for k in range(X.shape[1]):
+            out[i, k] = _product(G, mu, d0, d1, d2, X, rows[i], k)
+
+
+@jit
+def face_system(G, C, mu, d0, d1, d2, top, state, X, rows, pos, buffer, rhs):
+    """The face of the frames ``rows`` (sorted; the other frames held at ``X``) as a banded
+    system on its free variables only: returns ``(n_free, kd)``.
+
+    Sets the bound variables of ``rows`` in ``X`` to their bounds (``top``: the upper bounds, 0
+    where there are none) and the free ones to 0; numbers the free variables in order into
+    ``pos (len(rows), K)`` (−1 where fixed); fills ``buffer[: n_free·(kd + 1)]``, seen as
+    ``(n_free, kd + 1)``, with ``band[p, o] = M[p + o, p]`` (its transpose is LAPACK's lower band
+    storage, for ``dpbtrf``), and ``rhs[: n_free]`` with ``c − P X`` there. A free variable is
+    coupled to the free ones of its frame and to its key in the next two frames (when those are
+    among ``rows``), so ``kd`` is at most ``2K``.
+    """
+    n = rows.shape[0]
+    K = X.shape[1]
     p = 0
     for i in range(n):
+        t = rows[i]
         for a in range(K):
-            if free[i, a]:
+            s = state[t, a]
+            X[t, a] = top[a] if s == UPPER else 0.0
+            if s == FREE:
                 pos[i, a] = p
                 p += 1
             else:
@@ -181,8 +174,7 @@ def compact_index(free, rows, pos):
     for i in range(n):
         last = -1
         for a in range(K):
-            if pos[i, a] > last:
-                last = pos[i, a]
+            last = max(last, pos[i, a])
         near = i + 1 < n and rows[i + 1] == rows[i] + 1
         far = i + 2 < n and rows[i + 2] == rows[i] + 2
         for a in range(K):
@@ -190,38 +182,48 @@ def compact_index(free, rows, pos):
             if q < 0:
                 continue
             reach = last
-            if near and pos[i + 1, a] > reach:
-                reach = pos[i + 1, a]
-            if far and pos[i + 2, a] > reach:
-                reach = pos[i + 2, a]
-            if reach - q > kd:
-                kd = reach - q
-    return p, kd
-
-
-@jit
-def compact_band(G, mu, d0, d1, d2, rows, pos, band):
-    """The face system on the free variables of the frames ``rows`` (``pos``, their index from
-    :func:`compact_index`; frames not in ``rows`` are held): ``band (n_free, kd + 1)`` with
-    ``band[p, o] = M[p + o, p]``, whose transpose is LAPACK's lower band storage (``dpbtrf``)."""
-    n, K = pos.shape
-    W = band.shape[1]
+            if near:
+                reach = max(reach, pos[i + 1, a])
+            if far:
+                reach = max(reach, pos[i + 2, a])
+            kd = max(kd, reach - q)
+    W = kd + 1
+    band = buffer[: p * W].reshape((p, W))
     for i in range(n):
         t = rows[i]
         near = i + 1 < n and rows[i + 1] == t + 1
         far = i + 2 < n and rows[i + 2] == t + 2
         for a in range(K):
-            p = pos[i, a]
-            if p < 0:
+            q = pos[i, a]
+            if q < 0:
                 continue
             for o in range(W):
-                band[p, o] = 0.0
-            band[p, 0] = G[t, a, a] + mu * d0[t]
+                band[q, o] = 0.0
+            band[q, 0] = G[t, a, a] + mu * d0[t]
             for b in range(a + 1, K):
-                q = pos[i, b]
-                if q >= 0:
-                    band[p, q - p] = G[t, b, a]
+                if pos[i, b] >= 0:
+                    band[q, pos[i, b] - q] = G[t, b, a]
             if near and pos[i + 1, a] >= 0:
-                band[p, pos[i + 1, a] - p] = mu * d1[t]
+                band[q, pos[i + 1, a] - q] = mu * d1[t]
             if far and pos[i + 2, a] >= 0:
-                band[p, pos[i + 2, a] - p] = mu * d2[t]
+                band[q, pos[i + 2, a] - q] = mu * d2[t]
+            rhs[q] = C[t, a] - _product(G, mu, d0, d1, d2, X, t, a)
+    return p, kd
+
+
+@jit
+def kkt(G, C, mu, d0, d1, d2, X, state, upper, rows, x_scale, g_scale, out):
+    """Dimensionless KKT violations ``out (len(rows), K)`` of ``X`` on its face (``state``: 0 at
+    the lower bound, 1 free, 2 at the upper one), with ``g = c − P X``: positive where the
+    variable changes side in a primal–dual active-set step (a free one out of its box, a bound
+    one pulled inside)."""
+    K = X.shape[1]
+    for i in range(rows.shape[0]):
+        t = rows[i]
+        for k in range(K):
+            s = state[t, k]
+            if s == FREE:
+                out[i, k] = max(-X[t, k], X[t, k] - upper[k]) / x_scale
+            else:
+                g = C[t, k] - _product(G, mu, d0, d1, d2, X, t, k)
+                out[i, k] = (g if s == LOWER else -g) / g_scale

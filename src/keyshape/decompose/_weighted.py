@@ -261,6 +261,7 @@ class _Problem:
         # the band of the face being solved: room for every variable free, but only the pages a face
         # uses are ever touched (first touch costs a page fault; a buffer allocated anew would pay again)
         self.buffer = np.empty(n * K * (2 * K + 1))
+        self.rhs = np.empty(n * K)
         diagonal = np.einsum("tkk->tk", self.G)  # |G_ij| <= max(G_ii, G_jj): G_t is positive semi-definite
         self.g_scale = float(np.abs(self.C).max(initial=0.0) + diagonal.max(initial=0.0) + mu)
 
@@ -272,35 +273,38 @@ class _Problem:
 
     def solve(self, X, state, rows):
         """Frames ``rows`` (sorted) of ``X`` (in place) on the exact minimiser of their face, the
-        other frames held: the free variables numbered in order
-        (:func:`keyshape.decompose._kernels_weighted.compact_index`), their band factored by
-        LAPACK's banded Cholesky (``dpbtrf``)."""
+        other frames held: the free variables numbered in order, their band
+        (:func:`keyshape.decompose._kernels_weighted.face_system`) factored by LAPACK's banded
+        Cholesky (``dpbtrf``)."""
         from scipy.linalg import lapack
 
-        sub = state[rows]
-        free = sub == FREE
-        pos = np.empty(free.shape, np.int64)
-        n_free, kd = self.kw.compact_index(free, rows, pos)
-        held = np.where(sub == UPPER, self.top, 0.0)
-        X[rows] = held
+        pos = np.empty((len(rows), X.shape[1]), np.int64)
+        n_free, kd = self.kw.face_system(self.G, self.C, self.mu, *self.d, self.top, state, X, rows, pos,
+                                         self.buffer, self.rhs)
         if not n_free:
             return
         band = self.buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
-        self.kw.compact_band(self.G, self.mu, *self.d, rows, pos, band)
         factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)  # band.T: LAPACK's lower storage
         if info != 0:
             raise np.linalg.LinAlgError("banded Cholesky failed on a face: not positive definite")
-        x, info = lapack.dpbtrs(factor, (self.C[rows] - self.hess(X, rows))[free], lower=1, overwrite_b=1)
-        held[free] = x
-        X[rows] = held
+        x, info = lapack.dpbtrs(factor, self.rhs[:n_free], lower=1)
+        free = pos >= 0
+        sub = X[rows]
+        sub[free] = x
+        X[rows] = sub
 
     def violations(self, X, state, rows):
         """Dimensionless KKT violations ``(len(rows), K)`` on the current face (> 0: changes side)."""
-        g = self.C[rows] - self.hess(X, rows)
-        x_scale = 1.0 + float(np.abs(X).max(initial=0.0))
-        out = np.empty_like(g)
-        self.kw.violations(X[rows], g, state[rows], self.upper, x_scale, self.g_scale * x_scale, out)
+        out = np.empty((len(rows), X.shape[1]))
+        self.kw.kkt(self.G, self.C, self.mu, *self.d, X, state, self.upper, rows, self.x_scale(X),
+                    self.g_scale * self.x_scale(X), out)
         return out
+
+    def x_scale(self, X):
+        """``1 + max |x|``: the bounds' when every weight is bounded (cheap on a few frames)."""
+        if np.isfinite(self.upper).all():
+            return 1.0 + float(self.upper.max(initial=0.0))
+        return 1.0 + float(np.abs(X).max(initial=0.0))
 
 
 class _Certificate:
@@ -313,10 +317,11 @@ class _Certificate:
 
         self.problem, self.const, self.lapack = problem, float(const), lapack
         n, K = problem.C.shape
-        pos = np.empty((n, K), np.int64)
-        n_free, kd = problem.kw.compact_index(np.ones((n, K), bool), problem.every, pos)
-        band = np.empty((n_free, kd + 1))
-        problem.kw.compact_band(problem.G, problem.mu, *problem.d, problem.every, pos, band)
+        buffer, pos = np.empty(n * K * (2 * K + 1)), np.empty((n, K), np.int64)
+        n_free, kd = problem.kw.face_system(problem.G, problem.C, problem.mu, *problem.d, problem.top,
+                                            np.full((n, K), FREE, np.int8), np.zeros((n, K)), problem.every, pos,
+                                            buffer, np.empty(n * K))
+        band = buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
         self.factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)
         self.ok = info == 0
         self.F, self.q, self.Z = np.inf, -np.inf, None
@@ -408,14 +413,10 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
     problem = _Problem(G, C, mu, upper)
     n, K = problem.C.shape
     valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
-    state = np.full((n, K), FREE, np.int8)  # each frame's own active set: near the take's, found in O(T K³)
+    state = np.full((n, K), FREE, np.int8)  # each frame's own active set, then Gauss-Seidel sweeps
     X = np.empty((n, K))
-    bounded = bool(np.isfinite(problem.upper).any())
-    problem.kw.frame_states(problem.G, problem.C, problem.upper, bounded, valid, state, X)
-    if SWEEPS:
-        problem.kw.frame_sweeps(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, state, X,
-                                problem.every, SWEEPS)
-        state = np.where(X <= 0.0, LOWER, np.where(X >= problem.upper, UPPER, FREE)).astype(np.int8)
+    problem.kw.start(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bool(np.isfinite(problem.upper).any()),
+                     valid, state, X, SWEEPS)
     damping, cert = _Damping(), None
     for step in range(MAX_STEPS):
         problem.solve(X, state, problem.every)  # a face of the whole take: exact everywhere
