@@ -116,8 +116,8 @@ def _clarabel(A, B, weight, mu, upper):
             q[t * K:(t + 1) * K] -= B[t] @ At
     L = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n))
     P = sparse.block_diag(blocks) + mu * sparse.kron(L.T @ L, sparse.eye(K))
-    x = qpsolvers.solve_qp(sparse.csc_matrix(2 * P), 2 * q, lb=np.zeros(n * K), ub=np.broadcast_to(upper, (n, K)).ravel(),
-                           solver="clarabel")
+    x = qpsolvers.solve_qp(sparse.csc_matrix(2 * P), 2 * q, lb=np.zeros(n * K),
+                           ub=np.broadcast_to(upper, (n, K)).ravel(), solver="clarabel")
     return x.reshape(n, K)
 
 

@@ -107,7 +107,8 @@ def test_weighted_gram_take_matches_solve_weights(perf, keys):
     aligned = Track(aligned.points, aligned.fps, visibility=track.visibility)
     take = GramTake(keys, aligned.n_frames, weighted=True)
     for lo in range(0, aligned.n_frames, 50):
-        take.add(lo, aligned.points[lo : lo + 50][:, take.landmarks], aligned.visibility[lo : lo + 50][:, take.landmarks])
+        frames = slice(lo, lo + 50)
+        take.add(lo, aligned.points[frames][:, take.landmarks], aligned.visibility[frames][:, take.landmarks])
     expected = solve_weights(aligned[40:480], keys, smoothness=0.1, upper=1.0).values
     np.testing.assert_allclose(take.solve(40, 480, smoothness=0.1, upper=1.0), expected, atol=TOL, rtol=0)
     with pytest.raises(InputError, match="without smoothing"):

@@ -296,8 +296,8 @@ class _Problem:
     def violations(self, X, state, rows):
         """Dimensionless KKT violations ``(len(rows), K)`` on the current face (> 0: changes side)."""
         out = np.empty((len(rows), X.shape[1]))
-        self.kw.kkt(self.G, self.C, self.mu, *self.d, X, state, self.upper, rows, self.x_scale(X),
-                    self.g_scale * self.x_scale(X), out)
+        x_scale = self.x_scale(X)
+        self.kw.kkt(self.G, self.C, self.mu, *self.d, X, state, self.upper, rows, x_scale, self.g_scale * x_scale, out)
         return out
 
     def x_scale(self, X):
@@ -343,7 +343,8 @@ class _Certificate:
         p.k0.point_multipliers(p.C - PZ, Z, p.upper, False, Y)
         Y = np.where(np.isfinite(p.upper), Y, np.minimum(Y, 0.0))
         R = p.C - Y
-        q = self.const - float(np.einsum("tk,tk->", R, self.inverse(R))) - 2.0 * float(np.sum(np.maximum(Y, 0.0) * p.top))
+        support = 2.0 * float(np.sum(np.maximum(Y, 0.0) * p.top))  # 2σ_C(y): the box's
+        q = self.const - float(np.einsum("tk,tk->", R, self.inverse(R))) - support
         self.q = max(self.q, q)
         return self.gap
 
@@ -415,8 +416,8 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
     valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
     state = np.full((n, K), FREE, np.int8)  # each frame's own active set, then Gauss-Seidel sweeps
     X = np.empty((n, K))
-    problem.kw.start(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bool(np.isfinite(problem.upper).any()),
-                     valid, state, X, SWEEPS)
+    bounded = bool(np.isfinite(problem.upper).any())
+    problem.kw.start(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, valid, state, X, SWEEPS)
     damping, cert = _Damping(), None
     for step in range(MAX_STEPS):
         problem.solve(X, state, problem.every)  # a face of the whole take: exact everywhere
