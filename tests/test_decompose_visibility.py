@@ -259,3 +259,26 @@ def test_a_stopped_solve_warns_and_stays_feasible(monkeypatch):
     Bh = np.where(seen[:, None], B, np.nan)
     F, F_star = _objective(A, Bh, weight, stopped, mu), _objective(A, Bh, weight, best, mu)
     assert zero == 0.0 and 1e-9 < (F - F_star) / F <= gap * (1 + 1e-6) + 1e-12
+
+
+@pytest.mark.parametrize("bound", [1.0, np.inf])
+def test_frames_on_their_own_gram_matrices_are_the_exact_nnls(bound):
+    """Without smoothing every partly hidden frame is its own bounded NNLS on ``Aᵀ V_t A``: the
+    compiled pass over all frames gives nnls_gram's weights frame by frame (near-duplicate key
+    included), NaN where a frame has no data."""
+    from keyshape.decompose._nnls import nnls_gram
+    from keyshape.decompose._weighted import solve_weighted_frames, weighted_gram
+
+    rng = np.random.default_rng(7)
+    A, B, weight, upper = _hand_problem(2, n=700)
+    upper = np.full_like(upper, bound)
+    weight = np.clip(weight + rng.uniform(0, 0.3, weight.shape), 0, 1)
+    valid = np.ones(len(B), bool)
+    valid[5] = False
+    X = solve_weighted_frames(weighted_gram(A, weight), (weight * B) @ A, valid, upper)
+    for t in range(len(B)):
+        if not valid[t]:
+            assert np.isnan(X[t]).all()
+            continue
+        Av = A * weight[t][:, None]
+        np.testing.assert_allclose(X[t], nnls_gram(Av.T @ A, (B[t] @ Av)[None], upper, False)[0], atol=1e-8)

@@ -87,18 +87,29 @@ def test_hidden_landmarks_are_streamed_in_weighted_gram_form(perf, keys, tmp_pat
     assert np.nanmax(np.abs(unweighted.weights.values - whole.weights.values)) > 100 * TOL  # the visibility counts
 
 
-def test_hidden_landmarks_without_smoothing_or_with_convex_take_the_whole_take_path(perf, keys, tmp_path, monkeypatch):
+@pytest.mark.parametrize("upper", [1.0, None])
+def test_hidden_landmarks_without_smoothing_are_streamed(perf, keys, tmp_path, upper):
+    """Every frame on its own weighted Gram matrix: solve_take's per-frame weights (NaN where the
+    region is gone, then filled as there)."""
+    path = save_track(_hidden(perf), tmp_path / "hidden.npz")
+    whole = solve_take(load_track(path), keys, smoothness=0.0, upper=upper)
+    streamed = solve_track_file(path, keys, smoothness=0.0, upper=upper)
+    np.testing.assert_array_equal(np.isnan(streamed.weights.values), np.isnan(whole.weights.values))
+    np.testing.assert_allclose(streamed.weights.values, whole.weights.values, atol=1e-9, rtol=0)
+
+
+def test_hidden_landmarks_with_convex_take_the_whole_take_path(perf, keys, tmp_path, monkeypatch):
     from keyshape.app import _stream
 
     path = save_track(_hidden(perf), tmp_path / "hidden.npz")
     calls = []
     monkeypatch.setattr(_stream, "solve_take", lambda *a, **k: calls.append(k) or solve_take(*a, **k))
-    for options in ({"smoothness": 0.0}, {"convex": True}):
-        whole = solve_take(load_track(path), keys, **options)
-        np.testing.assert_array_equal(solve_track_file(path, keys, **options).weights.values, whole.weights.values)
-    assert len(calls) == 2
+    whole = solve_take(load_track(path), keys, convex=True)
+    np.testing.assert_array_equal(solve_track_file(path, keys, convex=True).weights.values, whole.weights.values)
+    assert len(calls) == 1
     solve_track_file(path, keys)
-    assert len(calls) == 2  # the smoothed, bounded default is streamed
+    solve_track_file(path, keys, smoothness=0.0)
+    assert len(calls) == 1  # the smoothed default and the per-frame solve are streamed
 
 
 def test_weighted_gram_take_matches_solve_weights(perf, keys):
@@ -111,8 +122,10 @@ def test_weighted_gram_take_matches_solve_weights(perf, keys):
         take.add(lo, aligned.points[frames][:, take.landmarks], aligned.visibility[frames][:, take.landmarks])
     expected = solve_weights(aligned[40:480], keys, smoothness=0.1, upper=1.0).values
     np.testing.assert_allclose(take.solve(40, 480, smoothness=0.1, upper=1.0), expected, atol=TOL, rtol=0)
-    with pytest.raises(InputError, match="without smoothing"):
-        take.solve(smoothness=0.0)
+    expected = solve_weights(aligned, keys, smoothness=0.0, upper=1.0).values
+    np.testing.assert_allclose(take.solve(smoothness=0.0, upper=1.0), expected, atol=1e-9, rtol=0)
+    with pytest.raises(InputError, match="convex"):
+        take.solve(smoothness=0.1, convex=True)
 
 
 def test_a_landmark_csv_is_loaded_whole(keys, perf, tmp_path):

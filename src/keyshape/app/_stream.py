@@ -50,16 +50,16 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
     A take with hidden landmarks (visibility below 1 in a keyed region, as nearly every real
     track has) is streamed too, each frame reduced to its weighted Gram form (``Aᵀ V_t A``,
     ``Aᵀ V_t b_t``, ``b_tᵀ V_t b_t``: :class:`keyshape.decompose.GramTake` with ``weighted``),
-    when smoothed and not ``convex``; otherwise its weighted solve needs the frames themselves,
-    and it is loaded whole and goes through :func:`solve_take`, as a file that cannot be
-    streamed (a landmark CSV) does. Options as :func:`solve_take`'s.
+    unless ``convex``: then its weighted solve needs the frames themselves, and it is loaded
+    whole and goes through :func:`solve_take`, as a file that cannot be streamed (a landmark
+    CSV) does. Options as :func:`solve_take`'s.
     """
     source = open_track(path)
     if source is not None and (source.n_landmarks != keys.n_landmarks or source.n_dims != keys.n_dims):
         raise InputError(f"the track has {source.n_landmarks} landmarks in {source.n_dims}D but the key set was "
                          f"made from {keys.n_landmarks} in {keys.n_dims}D")
     weighted = source is not None and not _all_seen(source, GramTake(keys, 0).landmarks)
-    if source is None or (weighted and (smoothness == 0 or convex)):
+    if source is None or (weighted and convex):
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)

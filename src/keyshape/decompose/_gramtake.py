@@ -22,7 +22,7 @@ import numpy as np
 from ..containers import KeyShapes
 from ..exceptions import InputError
 from ._solve import _check_smoothness, _check_tol, _mu, _upper_bounds, reduce_rows, solve_reduced
-from ._weighted import HIDDEN, solve_weighted_gram
+from ._weighted import HIDDEN, solve_weighted_frames, solve_weighted_gram
 
 __all__ = ["GramTake"]
 
@@ -51,7 +51,7 @@ class GramTake:
     n_frames : int
     weighted : bool
         :meth:`add` also takes each frame's visibility, and a region with hidden landmarks is
-        solved as the visibility-weighted smoothed solve (``smoothness > 0``, not ``convex``).
+        solved as the visibility-weighted solve (not ``convex``).
 
     Attributes
     ----------
@@ -63,9 +63,8 @@ class GramTake:
 
     Notes
     -----
-    Without ``weighted`` every landmark counts fully. The weighted per-frame solve
-    (``smoothness = 0``) and the weighted solve with ``convex`` need the frames themselves: a
-    take with hidden landmarks goes through :func:`solve_weights` for those.
+    Without ``weighted`` every landmark counts fully. The weighted solve with ``convex`` needs
+    the frames themselves: a take with hidden landmarks goes through :func:`solve_weights` for it.
 
     Examples
     --------
@@ -144,11 +143,13 @@ class GramTake:
         values = np.zeros((len(valid), self.n_keys))
 
         def region(r: _Region) -> np.ndarray:
-            if r.G is not None and r.hidden[0]:  # hidden landmarks: the weighted smoothed solve
-                if smoothness == 0.0 or convex:
-                    raise InputError("a take with hidden landmarks is solved from its frames without smoothing or "
-                                     "with convex (solve_weights), not in Gram form")
+            if r.G is not None and r.hidden[0]:  # hidden landmarks: the weighted solve
+                if convex:
+                    raise InputError("a take with hidden landmarks is solved from its frames with convex "
+                                     "(solve_weights), not in Gram form")
                 seen = valid & ~r.gone[frames]
+                if smoothness == 0.0:
+                    return solve_weighted_frames(r.G[frames], r.C[frames], seen, upper[r.keys])
                 out = solve_weighted_gram(r.G[frames], r.C[frames], r.sq[frames], seen, _mu(r.A.T @ r.A, smoothness),
                                           upper[r.keys], tol=tol)
                 if out is not None:

@@ -24,15 +24,16 @@ from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER, _subspace_minimiser
 def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
     """``min ½xᵀGx − cᵀx`` s.t. ``0 ≤ x ≤ u`` by block principal pivoting from the state ``s``
     (updated in place), as :func:`keyshape.decompose._kernels_nnls.block_pivoting` does for one
-    row, on the caller's work arrays; ``x`` gets the last subspace minimiser (clipped). A start
-    for the QP of the take, not a solution: a row where the exchanges stall keeps where it stopped."""
+    row, on the caller's work arrays; ``x`` gets the last subspace minimiser (clipped). True
+    if it meets the KKT conditions (to ``1e-11`` of the row's scale); a row where the exchanges
+    stall keeps where it stopped (a start for the take's QP all the same)."""
     K = c.shape[0]
     g_max, c_max = 0.0, 0.0
     for i in range(K):
         c_max = max(c_max, abs(c[i]))
         for j in range(K):
             g_max = max(g_max, abs(G[i, j]))
-    best, budget = K + 1, 3
+    best, budget, solved = K + 1, 3, False
     for _ in range(2 * K + 10):
         if not _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
             break
@@ -52,6 +53,7 @@ def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
             idx[i] = 1 if b else 0
             n_bad += b
         if n_bad == 0:
+            solved = True
             break
         if n_bad < best:
             best, budget = n_bad, 3
@@ -67,6 +69,25 @@ def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
                     s[i] = FREE
     for i in range(K):
         x[i] = min(max(x[i], 0.0), upper[i])
+    return solved
+
+
+@jit
+def frames_solve(G, C, upper, bounded, valid, X, stalled):
+    """Every frame's own box QP, ``min ½wᵀG_t w − c_tᵀw``, ``0 ≤ w ≤ u``, by block principal
+    pivoting from all free: ``X (T, K)``; ``stalled (T,)`` marks the frames (with data) where
+    the exchanges stalled, for an exact finish by the caller. Frames without data are left."""
+    T, K = C.shape
+    L = np.zeros((K, K))
+    rhs, idx = np.empty(K), np.empty(K, np.int64)
+    state = np.empty(K, np.int8)
+    for t in range(T):
+        stalled[t] = False
+        if not valid[t]:
+            continue
+        for k in range(K):
+            state[k] = FREE
+        stalled[t] = not _box_qp(G[t], C[t], upper, bounded, state, X[t], L, rhs, idx)
 
 
 @jit

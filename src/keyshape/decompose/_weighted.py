@@ -75,7 +75,8 @@ from ..exceptions import ConvergenceWarning
 from ._nnls import nnls_gram
 from ._sequence import second_difference_gram
 
-__all__ = ["HIDDEN", "coordinate_weights", "solve_weighted", "solve_weighted_gram", "weighted_gram"]
+__all__ = ["HIDDEN", "coordinate_weights", "solve_weighted", "solve_weighted_frames", "solve_weighted_gram",
+           "weighted_gram"]
 
 HIDDEN = 0.02  # a frame whose region keeps less of its weight (mean visibility) has no data term
 MAX_MM_STEPS = 500  # majorise-minimise steps of the smoothed solve
@@ -135,12 +136,35 @@ def solve_weighted(A: np.ndarray, B: np.ndarray, weight: np.ndarray, solve: Call
     W = solve(B)
     if not partial.size:
         return W
+    if smoothness == 0.0 and not convex:  # every partly hidden frame on its own Gram matrix, at once
+        v = weight[partial]
+        W[partial] = solve_weighted_frames(weighted_gram(A, v), (v * B[partial]) @ A, np.ones(len(partial), bool),
+                                           np.asarray(upper, dtype=float))
+        return W
     if smoothness == 0.0:
         for t in partial:
             Av = A * weight[t][:, None]  # V_t A
             W[t] = nnls_gram(Av.T @ A, (B[t] @ Av)[None], upper, convex)[0]
         return W
     return _majorise(A, B, weight[partial], partial, W, solve)
+
+
+def solve_weighted_frames(G: np.ndarray, C: np.ndarray, valid: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Every frame on its own Gram matrix (no smoothing): ``(n_frames, K)``, NaN where not
+    ``valid``. Block principal pivoting frame by frame, compiled (each frame checked against its
+    KKT conditions); the rare frame where the exchanges stall is finished exactly by
+    :func:`keyshape.decompose._nnls.nnls_gram`."""
+    from . import _kernels_weighted
+
+    G, C = np.ascontiguousarray(G, dtype=float), np.ascontiguousarray(C, dtype=float)
+    valid = np.asarray(valid, bool)
+    X, stalled = np.zeros(C.shape), np.zeros(len(C), bool)
+    upper = np.asarray(upper, dtype=float)
+    _kernels_weighted.frames_solve(G, C, upper, bool(np.isfinite(upper).any()), valid, X, stalled)
+    for t in np.flatnonzero(stalled):
+        X[t] = nnls_gram(G[t], C[t][None], upper, False)[0]
+    X[~valid] = np.nan
+    return X
 
 
 def solve_weighted_gram(G: np.ndarray, C: np.ndarray, sq: np.ndarray, valid: np.ndarray, mu: float,
