@@ -14,7 +14,7 @@ region is carried by the smoothness term from the frames around it, as a gap is.
 * Frames whose region keeps less than ``HIDDEN`` of its weight have no data term: they are
   gaps (NaN rows), bridged exactly by the smoothed solve (NaN weights without smoothing).
 * Without smoothing, every partly hidden frame is solved exactly on its own Gram matrix
-  ``Aᵀ V_t A``.
+  ``Aᵀ V_t A``, all in one compiled pass (:func:`solve_weighted_frames`).
 * With smoothing (and no ``Σw ≤ 1``) the QP is solved exactly in Gram form: ``G_t = Aᵀ V_t A``
   (one matrix product for all frames, :func:`weighted_gram`), ``c_t = Aᵀ V_t b_t`` and
   ``b_tᵀ V_t b_t`` are all it reads of the frames, so a long take is reduced chunk by chunk
