@@ -73,21 +73,90 @@ def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
 
 
 @jit
+def _active_finish(G, c, upper, bounded, s, x, L, rhs, idx, z):
+    """Primal active-set iterations (Nocedal & Wright 2006, Alg. 16.3) for ``min ½xᵀGx − cᵀx``,
+    ``0 ≤ x ≤ u``, from the feasible ``x`` (its state ``s`` consistent with it), in place:
+    monotone, so it ends where block principal pivoting stalls (degenerate rows: near-duplicate
+    keys). True at the optimum (to ``1e-11`` of the row's scale); False on a singular free block
+    or when out of iterations."""
+    K = c.shape[0]
+    g_max, c_max = 0.0, 0.0
+    for i in range(K):
+        c_max = max(c_max, abs(c[i]))
+        for j in range(K):
+            g_max = max(g_max, abs(G[i, j]))
+    for _ in range(10 * K + 20):
+        if not _subspace_minimiser(G, c, upper, s, z, L, rhs, idx):
+            return False
+        alpha, block = 1.0, -1
+        for i in range(K):
+            if s[i] != FREE:
+                continue
+            if z[i] < 0.0 and z[i] < x[i]:
+                a = x[i] / (x[i] - z[i])
+                if a < alpha:
+                    alpha, block = a, i
+            elif bounded and z[i] > upper[i] and z[i] > x[i]:
+                a = (upper[i] - x[i]) / (z[i] - x[i])
+                if a < alpha:
+                    alpha, block = a, i
+        for i in range(K):
+            x[i] += alpha * (z[i] - x[i])
+        if block >= 0:  # a free variable reached its bound first: it joins the bounds
+            if x[block] <= 0.5 * upper[block] or not bounded:
+                s[block], x[block] = LOWER, 0.0
+            else:
+                s[block], x[block] = UPPER, upper[block]
+            continue
+        scale = 1.0
+        for i in range(K):
+            scale = max(scale, 1.0 + abs(x[i]))
+        tol_y = KKT_TOL * (c_max + g_max * scale)
+        worst, size = -1, tol_y
+        for i in range(K):  # at the face's minimiser: the bound with the most wrong-signed multiplier leaves
+            if s[i] == FREE:
+                continue
+            y = -c[i]
+            for j in range(K):
+                y += G[i, j] * x[j]
+            wrong = -y if s[i] == LOWER else y
+            if wrong > size:
+                worst, size = i, wrong
+        if worst < 0:
+            return True
+        s[worst] = FREE
+    return False
+
+
+@jit
 def frames_solve(G, C, upper, bounded, valid, X, stalled):
-    """Every frame's own box QP, ``min ½wᵀG_t w − c_tᵀw``, ``0 ≤ w ≤ u``, by block principal
-    pivoting from all free: ``X (T, K)``; ``stalled (T,)`` marks the frames (with data) where
-    the exchanges stalled, for an exact finish by the caller. Frames without data are left."""
+    """Every frame's own box QP, ``min ½wᵀG_t w − c_tᵀw``, ``0 ≤ w ≤ u``, equilibrated, by block
+    principal pivoting from all free, finished by primal active-set iterations where the
+    exchanges stall: ``X (T, K)``; ``stalled (T,)`` marks the frames (with data) that even
+    those did not finish, for the caller. Frames without data are left."""
     T, K = C.shape
     L = np.zeros((K, K))
     rhs, idx = np.empty(K), np.empty(K, np.int64)
     state = np.empty(K, np.int8)
+    H, c, u, d, x, z = np.empty((K, K)), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K)
     for t in range(T):
         stalled[t] = False
         if not valid[t]:
             continue
-        for k in range(K):
+        for k in range(K):  # equilibrated, w = D v with D = diag(G_t)^(-1/2), as nnls_gram does
             state[k] = FREE
-        stalled[t] = not _box_qp(G[t], C[t], upper, bounded, state, X[t], L, rhs, idx)
+            d[k] = 1.0 / np.sqrt(G[t, k, k]) if G[t, k, k] > 0.0 else 1.0
+        for a in range(K):
+            c[a] = C[t, a] * d[a]
+            u[a] = upper[a] / d[a]
+            for b in range(K):
+                H[a, b] = d[a] * G[t, a, b] * d[b]
+        if not _box_qp(H, c, u, bounded, state, x, L, rhs, idx):  # stalled: the monotone finish
+            for k in range(K):
+                state[k] = LOWER if x[k] <= 0.0 else (UPPER if x[k] >= u[k] else FREE)
+            stalled[t] = not _active_finish(H, c, u, bounded, state, x, L, rhs, idx, z)
+        for k in range(K):
+            X[t, k] = min(x[k] * d[k], upper[k])
 
 
 @jit
