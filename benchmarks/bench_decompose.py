@@ -8,7 +8,7 @@
    frames per second: smoothness 1 and the product's default 0.1, with a tracker's gaps
    (5 % dropped frames, a 15-frame gap per 1,000), with a 60-frame gap every 700 frames, with
    ``convex``, and with a hand over the mouth (visibility weights: the weighted solve of
-   :mod:`keyshape.decompose._weighted`, each of its steps a smoothed solve); against Clarabel
+   :mod:`keyshape.decompose._weighted`, exact active-set steps on its banded Hessian); against Clarabel
    through qpsolvers on the same problem at a smaller T (the whole sequence as one sparse
    QP), with the objective gap.
 3. Peak memory (tracemalloc) against the number of frames, for both solvers.

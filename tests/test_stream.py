@@ -63,13 +63,69 @@ def test_gram_take_matches_solve_weights(perf, keys):
         np.testing.assert_allclose(take.solve(120, 480, **options), expected, atol=TOL, rtol=0)
 
 
-def test_hidden_landmarks_take_the_whole_take_path(perf, keys, tmp_path):
-    seen = np.ones(perf.track.points.shape[:2])
-    seen[50:80, perf.regions["lower"]] = 0.2  # a hand over the mouth
-    track = Track(perf.track.points, perf.track.fps, visibility=seen)
-    path = save_track(track, tmp_path / "hidden.npz")
+def _hidden(perf, n_missing=True):
+    """The take with a hand over the mouth (visibility 0.2, then 0: the region gone for a while) and
+    a few percent hidden everywhere, as real tracks read; frames without a face and gaps too."""
+    rng = np.random.default_rng(5)
+    seen = np.clip(1.0 - rng.exponential(0.03, perf.track.points.shape[:2]), 0.0, 1.0)
+    seen[50:80, perf.regions["lower"]] = 0.2
+    seen[60:70, perf.regions["lower"]] = 0.0
+    track = _with_gaps(perf.track) if n_missing else perf.track
+    return Track(track.points, track.fps, frame_index=track.frame_index, visibility=seen)
+
+
+@pytest.mark.parametrize("chunk", [64, 4096])
+def test_hidden_landmarks_are_streamed_in_weighted_gram_form(perf, keys, tmp_path, chunk):
+    """A take with visibility is streamed (no whole-take copy) and gives solve_take's weights."""
+    path = save_track(_hidden(perf), tmp_path / "hidden.npz")
     whole = solve_take(load_track(path), keys)  # visibility is stored as float32
-    np.testing.assert_array_equal(solve_track_file(path, keys).weights.values, whole.weights.values)
+    streamed = solve_track_file(path, keys, chunk=chunk)
+    assert streamed.gaps == whole.gaps
+    np.testing.assert_array_equal(np.isnan(streamed.weights.values), np.isnan(whole.weights.values))
+    np.testing.assert_allclose(streamed.weights.values, whole.weights.values, atol=TOL, rtol=0)
+    unweighted = solve_take(Track(load_track(path).points, perf.track.fps, frame_index=whole.weights.frame_index), keys)
+    assert np.nanmax(np.abs(unweighted.weights.values - whole.weights.values)) > 100 * TOL  # the visibility counts
+
+
+@pytest.mark.parametrize("upper", [1.0, None])
+def test_hidden_landmarks_without_smoothing_are_streamed(perf, keys, tmp_path, upper):
+    """Every frame on its own weighted Gram matrix: solve_take's per-frame weights (NaN where the
+    region is gone, then filled as there)."""
+    path = save_track(_hidden(perf), tmp_path / "hidden.npz")
+    whole = solve_take(load_track(path), keys, smoothness=0.0, upper=upper)
+    streamed = solve_track_file(path, keys, smoothness=0.0, upper=upper)
+    np.testing.assert_array_equal(np.isnan(streamed.weights.values), np.isnan(whole.weights.values))
+    np.testing.assert_allclose(streamed.weights.values, whole.weights.values, atol=1e-9, rtol=0)
+
+
+def test_hidden_landmarks_with_convex_take_the_whole_take_path(perf, keys, tmp_path, monkeypatch):
+    from keyshape.app import _stream
+
+    path = save_track(_hidden(perf), tmp_path / "hidden.npz")
+    calls = []
+    monkeypatch.setattr(_stream, "solve_take", lambda *a, **k: calls.append(k) or solve_take(*a, **k))
+    whole = solve_take(load_track(path), keys, convex=True)
+    np.testing.assert_array_equal(solve_track_file(path, keys, convex=True).weights.values, whole.weights.values)
+    assert len(calls) == 1
+    solve_track_file(path, keys)
+    solve_track_file(path, keys, smoothness=0.0)
+    assert len(calls) == 1  # the smoothed default and the per-frame solve are streamed
+
+
+def test_weighted_gram_take_matches_solve_weights(perf, keys):
+    track = _hidden(perf, n_missing=False)
+    aligned = align(track, reference=keys.neutral, stable=perf.stable)[0]
+    aligned = Track(aligned.points, aligned.fps, visibility=track.visibility)
+    take = GramTake(keys, aligned.n_frames, weighted=True)
+    for lo in range(0, aligned.n_frames, 50):
+        frames = slice(lo, lo + 50)
+        take.add(lo, aligned.points[frames][:, take.landmarks], aligned.visibility[frames][:, take.landmarks])
+    expected = solve_weights(aligned[40:480], keys, smoothness=0.1, upper=1.0).values
+    np.testing.assert_allclose(take.solve(40, 480, smoothness=0.1, upper=1.0), expected, atol=TOL, rtol=0)
+    expected = solve_weights(aligned, keys, smoothness=0.0, upper=1.0).values
+    np.testing.assert_allclose(take.solve(smoothness=0.0, upper=1.0), expected, atol=1e-9, rtol=0)
+    with pytest.raises(InputError, match="convex"):
+        take.solve(smoothness=0.1, convex=True)
 
 
 def test_a_landmark_csv_is_loaded_whole(keys, perf, tmp_path):

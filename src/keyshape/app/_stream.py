@@ -5,7 +5,10 @@ frames of 478 points are 1.15 GB each in float64), though the solvers read of ea
 ``c_t = Aᵀ b_t`` and ``‖b_t‖²`` per region (:class:`keyshape.decompose.GramTake`). Here a chunk
 of frames at a time is read, aligned on the stable points (Umeyama, batched), brought into the
 canonical frame on the regions' landmarks only, and reduced; then the whole take is solved on
-the reduced data, exactly as :func:`solve_take` solves it.
+the reduced data, exactly as :func:`solve_take` solves it. A take with hidden landmarks (real
+tracks read a few percent hidden nearly everywhere) keeps per frame its weighted Gram form
+instead, ``Aᵀ V_t A``, ``Aᵀ V_t b_t`` and ``b_tᵀ V_t b_t`` (``K² + K + 1`` numbers), which is all
+the smoothed weighted solve reads.
 """
 
 from __future__ import annotations
@@ -43,23 +46,26 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
                      chunk: int = CHUNK) -> SolvedFile:
     """The weights of a track file on ``keys``: :func:`solve_take`'s, without the take in memory.
 
-    The points are streamed in chunks of ``chunk`` frames (:meth:`keyshape.io.track.TrackFile.chunks`)
-    when every landmark of the keyed regions is fully visible; a take with hidden landmarks
-    (visibility below 1), whose weighted solve needs the frames themselves, and a file that
-    cannot be streamed (a landmark CSV) are loaded whole and go through :func:`solve_take`.
-    Options as :func:`solve_take`'s.
+    The points are streamed in chunks of ``chunk`` frames (:meth:`keyshape.io.track.TrackFile.chunks`).
+    A take with hidden landmarks (visibility below 1 in a keyed region, as nearly every real
+    track has) is streamed too, each frame reduced to its weighted Gram form (``Aᵀ V_t A``,
+    ``Aᵀ V_t b_t``, ``b_tᵀ V_t b_t``: :class:`keyshape.decompose.GramTake` with ``weighted``),
+    unless ``convex``: then its weighted solve needs the frames themselves, and it is loaded
+    whole and goes through :func:`solve_take`, as a file that cannot be streamed (a landmark
+    CSV) does. Options as :func:`solve_take`'s.
     """
     source = open_track(path)
     if source is not None and (source.n_landmarks != keys.n_landmarks or source.n_dims != keys.n_dims):
         raise InputError(f"the track has {source.n_landmarks} landmarks in {source.n_dims}D but the key set was "
                          f"made from {keys.n_landmarks} in {keys.n_dims}D")
-    take = GramTake(keys, 0 if source is None else source.n_frames)
-    if source is None or not _all_seen(source, take.landmarks):
+    weighted = source is not None and not _all_seen(source, GramTake(keys, 0).landmarks)
+    if source is None or (weighted and convex):
         from ._pipeline import solve_take  # with the key-shape search and tracking code: only this path needs it
 
         solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
+    take = GramTake(keys, source.n_frames, weighted=weighted)
     face = _reduce(source, keys, take, chunk)
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
@@ -86,8 +92,10 @@ def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> n
     for start, seen, points in source.chunks(needed, frames=chunk):
         face[start : start + len(seen)] = seen
         poses = procrustes(reference, points[:, :n_stable])  # x_image = s R x_canonical + t, per frame
+        seen_here = None if not take.weighted else source.visibility[start : start + len(seen)][:, take.landmarks]
         for lo in range(0, len(points), block):  # the regions' points block by block, in a core's cache
             part = slice(lo, lo + block)
             pose = Poses(poses.rotations[part], poses.translations[part], poses.scales[part])
-            take.add(start + lo, to_canonical(points[part, n_stable:], pose))
+            take.add(start + lo, to_canonical(points[part, n_stable:], pose),
+                     None if seen_here is None else seen_here[part])
     return face

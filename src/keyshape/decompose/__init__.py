@@ -9,8 +9,10 @@
 
 Private modules: ``_solve`` (the public functions and their checks), ``_gramtake``, ``_nnls`` and ``_reduced``
 (batched per-frame NNLS), ``_spacetime``, ``_sequence`` and ``_activeset`` (the smoothed solve),
-``_kernels`` and ``_kernels_nnls`` (the numba-compiled kernels; numba is imported only there, on
-the first solve: importing this package is light).
+``_weighted`` (hidden landmarks weighted by their visibility, the smoothed weighted QP exactly in
+Gram form), ``_kernels``, ``_kernels_nnls``, ``_kernels_face`` and ``_kernels_weighted`` (the
+numba-compiled kernels; numba is imported only in ``_kernels``, on the first solve: importing this
+package is light).
 """
 
 from ._gramtake import GramTake

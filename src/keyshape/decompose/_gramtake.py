@@ -4,6 +4,11 @@ Per region the solvers read of frame ``t`` only ``c_t = Aᵀ b_t`` (K numbers) a
 (:func:`keyshape.decompose._solve.reduce_rows`): the smoothed solve is a problem over the whole
 take, but in these ``K``-dimensional terms. So a long take is aligned and reduced chunk by chunk,
 and its landmarks (``n_frames × n_landmarks × n_dims``) never exist all at once.
+
+With the landmarks' visibility (``weighted``), the smoothed weighted solve reads of each frame
+its own Gram matrix ``G_t = Aᵀ V_t A`` (``K × K``, one product per chunk: the visibility times
+the landmarks' outer products), ``c_t = Aᵀ V_t b_t`` and ``b_tᵀ V_t b_t``
+(:func:`keyshape.decompose._weighted.solve_weighted_gram`): ``K² + K + 1`` numbers a frame.
 """
 
 from __future__ import annotations
@@ -16,7 +21,8 @@ from itertools import pairwise
 import numpy as np
 
 from ..containers import KeyShapes
-from ._solve import _check_smoothness, _check_tol, _upper_bounds, reduce_rows, solve_reduced
+from ..exceptions import InputError
+from ._solve import _check_smoothness, _check_tol, _mu, _upper_bounds, reduce_rows, solve_reduced
 
 __all__ = ["GramTake"]
 
@@ -28,8 +34,12 @@ class _Region:
     keys: np.ndarray  # (K,) int, the region's keys
     span: slice  # its landmarks in GramTake.landmarks
     A: np.ndarray  # (m, K), the keys' deltas as columns
-    C: np.ndarray  # (n_frames, K), c_t = Aᵀ b_t
-    sq: np.ndarray  # (n_frames,), ‖b_t‖²
+    C: np.ndarray  # (n_frames, K), c_t = Aᵀ b_t (Aᵀ V_t b_t when weighted)
+    sq: np.ndarray  # (n_frames,), ‖b_t‖² (b_tᵀ V_t b_t)
+    H: np.ndarray | None = None  # (n_landmarks, K²): Σ over a landmark's coordinates of a aᵀ (weighted)
+    G: np.ndarray | None = None  # (n_frames, K, K): Aᵀ V_t A (weighted)
+    gone: np.ndarray | None = None  # (n_frames,) bool: the region hidden (no data term; weighted)
+    hidden: list | None = None  # [bool]: any landmark of the region seen less than fully (weighted)
 
 
 class GramTake:
@@ -39,6 +49,9 @@ class GramTake:
     ----------
     keys : KeyShapes
     n_frames : int
+    weighted : bool
+        :meth:`add` also takes each frame's visibility, and a region with hidden landmarks is
+        solved as the visibility-weighted solve (not ``convex``).
 
     Attributes
     ----------
@@ -50,8 +63,8 @@ class GramTake:
 
     Notes
     -----
-    Every landmark counts fully (no ``visibility``): a take with hidden landmarks goes through
-    :func:`solve_weights`, whose weighted solve needs the frames themselves.
+    Without ``weighted`` every landmark counts fully. The weighted solve with ``convex`` needs
+    the frames themselves: a take with hidden landmarks goes through :func:`solve_weights` for it.
 
     Examples
     --------
@@ -70,7 +83,8 @@ class GramTake:
     True
     """
 
-    def __init__(self, keys: KeyShapes, n_frames: int):
+    def __init__(self, keys: KeyShapes, n_frames: int, *, weighted: bool = False):
+        self.weighted = bool(weighted)
         keyed = [(lm, ks) for r, lm in keys.regions.items() if len(ks := np.asarray(keys.keys_of(r)))]
         self.n_keys, self.n_frames = keys.n_keys, int(n_frames)
         self.landmarks = np.concatenate([lm for lm, _ in keyed]).astype(np.intp) if keyed else np.zeros(0, np.intp)
@@ -83,17 +97,37 @@ class GramTake:
     def _region(self, keys: KeyShapes, landmarks: np.ndarray, ks: np.ndarray, span: slice) -> _Region:
         # k: key, p: region landmark, d: dimension; A[(p, d), k] = deltas[k, p, d]
         A = keys.deltas[np.ix_(ks, landmarks)].reshape(len(ks), -1).T
-        return _Region(ks, span, A, np.empty((self.n_frames, len(ks))), np.empty(self.n_frames))
+        n, K = self.n_frames, len(ks)
+        if not self.weighted:
+            return _Region(ks, span, A, np.empty((n, K)), np.empty(n))
+        a = A.reshape(len(landmarks), keys.n_dims, K)  # rows of A are (landmark, dimension) pairs
+        H = np.einsum("pdk,pdl->pkl", a, a).reshape(len(landmarks), K * K)
+        return _Region(ks, span, A, np.empty((n, K)), np.empty(n), H, np.empty((n, K, K)), np.zeros(n, bool), [False])
 
-    def add(self, start: int, points: np.ndarray) -> None:
+    def add(self, start: int, points: np.ndarray, seen: np.ndarray | None = None) -> None:
         """Frames ``start ... start + n - 1``: ``points (n, n_needed, n_dims)`` float, aligned onto
-        the key set's neutral, the landmarks :attr:`landmarks`; NaN frames have no face."""
+        the key set's neutral, the landmarks :attr:`landmarks`; NaN frames have no face.
+        ``seen (n, n_needed)``: their visibility in [0, 1] (``weighted`` only; None: all seen)."""
         stop = start + len(points)
         deltas = points - self._neutral  # b_t of every region, side by side
+        face = np.isfinite(points[:, :1, 0]).all(axis=1) if points.shape[1] else np.ones(len(points), bool)
         for region in self._regions:
             B = deltas[:, region.span].reshape(len(points), -1)  # a view: the region's b_t, flattened
-            region.C[start:stop], region.sq[start:stop] = reduce_rows(region.A, B)
-        self.valid[start:stop] = np.isfinite(points[:, :1, 0]).all(axis=1) if points.shape[1] else True
+            if not self.weighted:
+                region.C[start:stop], region.sq[start:stop] = reduce_rows(region.A, B)
+                continue
+            v = np.ones((len(points), region.H.shape[0])) if seen is None else np.asarray(seen[:, region.span], float)
+            region.hidden[0] = region.hidden[0] or bool((v[face] < 1.0).any())
+            from ._weighted import HIDDEN  # (with numba, loaded on the first solve, as in _solve)
+
+            gone = v.mean(axis=1) < HIDDEN
+            region.gone[start:stop] = gone
+            v = np.where((face & ~gone)[:, None], v, 0.0)  # no data term: G_t, c_t and b_tᵀV_tb_t all 0
+            B = np.where(face[:, None], B, 0.0)
+            Bv = (B.reshape(len(v), v.shape[1], -1) * v[:, :, None]).reshape(B.shape)  # V_t b_t
+            region.C[start:stop], region.sq[start:stop] = Bv @ region.A, np.einsum("fm,fm->f", Bv, B)
+            region.G[start:stop] = (v @ region.H).reshape(-1, *region.G.shape[1:])
+        self.valid[start:stop] = face
 
     def solve(self, start: int = 0, stop: int | None = None, *, upper: float | np.ndarray | None = None,
               smoothness: float = 0.0, convex: bool = False, tol: float = 1e-7) -> np.ndarray:
@@ -116,8 +150,23 @@ class GramTake:
 
         def task(job: tuple[_Region, slice]) -> np.ndarray:
             r, part = job
-            rows = slice(start + part.start, start + part.stop)
-            return solve_reduced(r.A.T @ r.A, r.C[rows], r.sq[rows], upper[r.keys], smoothness, bool(convex), tol)
+            rows, here = slice(start + part.start, start + part.stop), valid[part]
+            if r.G is not None and r.hidden[0]:  # hidden landmarks: the weighted solve
+                from ._weighted import solve_weighted_frames, solve_weighted_gram
+
+                if convex:
+                    raise InputError("a take with hidden landmarks is solved from its frames with convex "
+                                     "(solve_weights), not in Gram form")
+                seen = here & ~r.gone[rows]
+                if smoothness == 0.0:
+                    return solve_weighted_frames(r.G[rows], r.C[rows], seen, upper[r.keys])
+                out = solve_weighted_gram(r.G[rows], r.C[rows], r.sq[rows], seen, _mu(r.A.T @ r.A, smoothness),
+                                          upper[r.keys], tol=tol)
+                if out is not None:
+                    return out
+                raise InputError("the weighted smoothed solve failed: the region's keys are degenerate")
+            sq = np.where(here, r.sq[rows], np.nan)  # NaN rows: frames without a face
+            return solve_reduced(r.A.T @ r.A, r.C[rows], sq, upper[r.keys], smoothness, bool(convex), tol)
 
         for (r, part), solved in zip(tasks, _each(task, tasks, len(valid))):
             values[part, r.keys] = solved

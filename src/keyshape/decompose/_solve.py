@@ -235,7 +235,7 @@ def _solve_seen(A, B, track, landmarks, upper, smoothness, convex, tol):
 
     weight = coordinate_weights(track.visibility[:, landmarks], track.n_dims)
     return solve_weighted(A, B, weight, lambda b: _solve_region(A, b, upper, smoothness, convex, tol),
-                          smoothness=smoothness, upper=upper, convex=convex, mu=_mu(A.T @ A, smoothness))
+                          smoothness=smoothness, upper=upper, convex=convex, mu=_mu(A.T @ A, smoothness), tol=tol)
 
 
 def _solve_region(A, B, upper, smoothness, convex, tol=1e-7):

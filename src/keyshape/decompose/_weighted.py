@@ -14,25 +14,49 @@ region is carried by the smoothness term from the frames around it, as a gap is.
 * Frames whose region keeps less than ``HIDDEN`` of its weight have no data term: they are
   gaps (NaN rows), bridged exactly by the smoothed solve (NaN weights without smoothing).
 * Without smoothing, every partly hidden frame is solved exactly on its own Gram matrix
-  ``Aᵀ V_t A``.
-* With smoothing (and no ``Σw ≤ 1``), the QP is solved exactly by primal–dual active-set steps
-  (Hintermüller, Ito & Kunisch 2003) from the unweighted solution's active set: the Hessian
-  ``blockdiag(Aᵀ V_t A) + μ LᵀL ⊗ I`` is banded (bandwidth ``2K``, frames in order), so each step
-  is one banded Cholesky factorisation of its free variables (:func:`_active_set_solve`); the
-  steps stop when the active set repeats, which is the optimum. On the embedded clip, where
-  MediaPipe's landmarks read a few percent hidden in almost every frame, that is 3–6 steps.
-* Otherwise, or should those steps cycle (they need not converge on every QP; then from where
-  they stopped), majorise-minimise (Kiers 1997; Srebro & Jaakkola
-  2003): as ``V_t ⪯ I``, ``‖V_t^{1/2}(A w − b_t)‖² ≤ ‖A w − \\tilde b_t‖² + const`` with the
-  hidden part filled in from the current fit, ``\\tilde b_t = v_t ⊙ b_t + (1 − v_t) ⊙ A w_t^{(k)}``;
-  each step is the unweighted solve on ``\\tilde B`` (the shared Gram matrix, the compiled
-  kernels) and the objective never increases (up to 160 solves on the clip).
+  ``Aᵀ V_t A``, all in one compiled pass (:func:`solve_weighted_frames`).
+* With smoothing (and no ``Σw ≤ 1``) the QP is solved exactly in Gram form: ``G_t = Aᵀ V_t A``
+  (one matrix product for all frames, :func:`weighted_gram`), ``c_t = Aᵀ V_t b_t`` and
+  ``b_tᵀ V_t b_t`` are all it reads of the frames, so a long take is reduced chunk by chunk
+  (:class:`keyshape.decompose.GramTake`). :func:`solve_weighted_gram` runs primal–dual
+  active-set steps (Hintermüller, Ito & Kunisch 2003) on the banded Hessian
+  ``P = blockdiag(G_t) + μ LᵀL ⊗ I`` (bandwidth ``2K``, frames in order): each step fixes the
+  variables at their bounds and solves the free ones exactly, one banded Cholesky factorisation
+  of the free variables only (LAPACK's ``dpbtrf``), then moves every variable that breaks a KKT
+  condition to the other side.
+
+  - The first active set is every frame's own (its box QP without the smoothness, block
+    principal pivoting), then two symmetric block Gauss–Seidel sweeps over the frames (each
+    frame's box QP with its neighbours held): a sweep carries a change along the whole take.
+    (The unconstrained smooth fit ``P⁻¹c``, clipped, is a far worse start where keys are near
+    duplicates: its weights swing far outside the box, eight steps instead of three.)
+  - Once at most one variable in :data:`FEW` changes, *local* steps re-solve only the frames
+    within :data:`SMALL` of the latest changes, the rest held, until none is left, and one
+    exact face on the frames within :data:`WINDOW` of every change closes the phase. In weakly
+    seen stretches and along runs of weights at a bound the exchanges move the edge of a run
+    by about a frame per step (the second difference couples a frame to the one two away with
+    the wrong sign for a faster release): local steps make those runs cost their frames, not
+    the take's. A variable that goes back and forth (:data:`CYCLING` changes) then moves only
+    as the largest violation of its window, which breaks the cycles of degenerate faces.
+  - The answer is exact: the steps end on a face of the whole take whose solution meets every
+    KKT condition (to ``1e-11``, dimensionless). Should they be slow (damped, or past half of
+    :data:`MAX_STEPS`), the whole ``P`` is factored once more for a duality bound,
+    ``q(y) = const − (c − y)ᵀP⁻¹(c − y) − 2σ_C(y) ≤ F*``, and a relative gap of ``tol``
+    (1e-7 by default) ends them as it ends the unweighted solve; above ``max(1e-4, 100 tol)``
+    a ConvergenceWarning says so.
+* Otherwise (``Σw ≤ 1``, or a ``P`` that is not positive definite), majorise-minimise
+  (Kiers 1997; Srebro & Jaakkola 2003): as ``V_t ⪯ I``,
+  ``‖V_t^{1/2}(A w − b_t)‖² ≤ ‖A w − \\tilde b_t‖² + const`` with the hidden part filled in from
+  the current fit, ``\\tilde b_t = v_t ⊙ b_t + (1 − v_t) ⊙ A w_t^{(k)}``; each step is the
+  unweighted solve on ``\\tilde B`` and the objective never increases.
 
 Frames with every landmark seen are not touched: a track without visibility, or an all-visible
 region, takes the unweighted path unchanged.
 
 References
 ----------
+Hintermüller, M., Ito, K. & Kunisch, K. (2003). The primal-dual active set strategy as a
+semismooth Newton method. *SIAM J. Optim.* 13(3), 865–888.
 Kiers, H. A. L. (1997). Weighted least squares fitting using ordinary least squares algorithms.
 *Psychometrika* 62(2), 251–266.
 Srebro, N. & Jaakkola, T. (2003). Weighted low-rank approximations. *ICML*.
@@ -51,11 +75,23 @@ from ..exceptions import ConvergenceWarning
 from ._nnls import nnls_gram
 from ._sequence import second_difference_gram
 
-__all__ = ["HIDDEN", "coordinate_weights", "solve_weighted"]
+__all__ = ["HIDDEN", "coordinate_weights", "solve_weighted", "solve_weighted_frames", "solve_weighted_gram",
+           "weighted_gram"]
 
 HIDDEN = 0.02  # a frame whose region keeps less of its weight (mean visibility) has no data term
-MAX_STEPS = 500  # majorise-minimise steps of the smoothed solve
+MAX_MM_STEPS = 500  # majorise-minimise steps of the smoothed solve
 STEP_TOL = 1e-5  # ... until no weight moves by more than this
+_WARN_GAP = 1e-4  # a certified gap above this (and 100x the asked one) is reported, as in _spacetime
+
+_KKT_TOL = 1e-11  # a dimensionless KKT violation below this is none (as in _activeset)
+LOWER, FREE, UPPER = 0, 1, 2  # the state of a variable
+WINDOW = 40  # frames on either side of the changes of a local phase re-solved exactly at its end
+SMALL = 20  # frames on either side of a change re-solved by each step of a local phase
+FEW = 100  # a local phase once at most 1 in FEW variables changes on the whole take
+MAX_STEPS = 30  # active-set steps on the whole take
+MAX_LOCAL = 300  # steps of one local phase
+CYCLING = 4  # changes of side after which a variable counts as cycling
+SWEEPS = 2  # symmetric block Gauss-Seidel sweeps over the frames before the first step
 
 
 def coordinate_weights(seen: np.ndarray, n_dims: int) -> np.ndarray:
@@ -65,7 +101,8 @@ def coordinate_weights(seen: np.ndarray, n_dims: int) -> np.ndarray:
 
 
 def solve_weighted(A: np.ndarray, B: np.ndarray, weight: np.ndarray, solve: Callable[[np.ndarray], np.ndarray], *,
-                   smoothness: float, upper: np.ndarray, convex: bool, mu: float | None = None) -> np.ndarray:
+                   smoothness: float, upper: np.ndarray, convex: bool, mu: float | None = None,
+                   tol: float = 1e-7) -> np.ndarray:
     """(n_frames, K) weights of one region with per-frame, per-coordinate data weights.
 
     Parameters
@@ -78,22 +115,31 @@ def solve_weighted(A: np.ndarray, B: np.ndarray, weight: np.ndarray, solve: Call
     upper : (K,) float; convex : bool (for the exact per-frame solves)
     mu : float, optional
         The smoothness term's weight ``μ`` that ``solve`` uses; with it (and not ``convex``) the
-        smoothed problem is solved exactly by active-set steps, else by majorise-minimise.
+        smoothed problem is solved exactly in Gram form (:func:`solve_weighted_gram`), else by
+        majorise-minimise.
+    tol : float
+        The relative duality gap that the exact smoothed solve certifies.
     """
     B = np.array(B, dtype=float)
     gone = weight.mean(axis=1) < HIDDEN
     B[gone] = np.nan
     partial = np.flatnonzero(np.isfinite(B).all(axis=1) & (weight < 1.0).any(axis=1))
-    start = None
     if partial.size and smoothness > 0.0 and mu is not None and mu > 0.0 and not convex:
-        found = _active_set_solve(A, B, weight, None, mu, np.asarray(upper, dtype=float))
-        if found is not None and found[1]:
-            return found[0]
-        start = None if found is None else found[0]  # cycling: majorise-minimise finishes from here
-    if start is not None:
-        return _majorise(A, B, weight[partial], partial, start, solve)
+        seen = np.isfinite(B).all(axis=1)
+        v = np.where(seen[:, None], weight, 0.0)
+        B0 = np.where(seen[:, None], B, 0.0)
+        Bv = v * B0
+        found = solve_weighted_gram(weighted_gram(A, v), Bv @ A, np.einsum("fm,fm->f", Bv, B0), seen, mu,
+                                    np.asarray(upper, dtype=float), tol=tol)
+        if found is not None:
+            return found
     W = solve(B)
     if not partial.size:
+        return W
+    if smoothness == 0.0 and not convex:  # every partly hidden frame on its own Gram matrix, at once
+        v = weight[partial]
+        W[partial] = solve_weighted_frames(weighted_gram(A, v), (v * B[partial]) @ A, np.ones(len(partial), bool),
+                                           np.asarray(upper, dtype=float))
         return W
     if smoothness == 0.0:
         for t in partial:
@@ -103,133 +149,78 @@ def solve_weighted(A: np.ndarray, B: np.ndarray, weight: np.ndarray, solve: Call
     return _majorise(A, B, weight[partial], partial, W, solve)
 
 
-MAX_EXCHANGES = 50  # active-set steps of the exact smoothed solve before majorise-minimise takes over
+def solve_weighted_frames(G: np.ndarray, C: np.ndarray, valid: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Every frame on its own Gram matrix (no smoothing): ``(n_frames, K)``, NaN where not
+    ``valid``. Block principal pivoting frame by frame, compiled (each frame checked against its
+    KKT conditions); the rare frame where the exchanges stall is finished exactly by
+    :func:`keyshape.decompose._nnls.nnls_gram`."""
+    from . import _kernels_weighted
+
+    G, C = np.ascontiguousarray(G, dtype=float), np.ascontiguousarray(C, dtype=float)
+    valid = np.asarray(valid, bool)
+    X, stalled = np.zeros(C.shape), np.zeros(len(C), bool)
+    upper = np.asarray(upper, dtype=float)
+    _kernels_weighted.frames_solve(G, C, upper, bool(np.isfinite(upper).any()), valid, X, stalled)
+    for t in np.flatnonzero(stalled):
+        X[t] = nnls_gram(G[t], C[t][None], upper, False)[0]
+    X[~valid] = np.nan
+    return X
 
 
-def _active_set_solve(A, B, weight, W, mu, upper):
-    """The exact minimiser ``(n_frames, K)`` of the weighted smoothed QP by primal–dual active-set
-    steps from the active set of ``W`` (None: every variable free, so the first step is the
-    unconstrained smooth fit): ``(X, True)``; ``(X, False)`` with a feasible ``X`` near it when
-    the exchanges cycle (primal–dual active-set steps need not converge on every QP), None when
-    a face is singular.
+def solve_weighted_gram(G: np.ndarray, C: np.ndarray, sq: np.ndarray, valid: np.ndarray, mu: float,
+                        upper: np.ndarray, *, tol: float = 1e-7) -> np.ndarray | None:
+    """The weighted smoothed QP of one region from its Gram form; frames before the first or
+    after the last frame with data are NaN (not extrapolated), as in the unweighted solve.
 
-    Variables are ordered frame-major, ``x[t·K + k] = w_t[k]``; the Hessian ``P`` (half of the
-    objective's) is ``G_t = Aᵀ V_t A`` on the diagonal blocks (zero in gaps) plus ``μ LᵀL ⊗ I``,
-    lower bandwidth ``2K``. A step fixes the variables at their bounds, solves the free ones
-    exactly, then moves each variable by the sign of ``x − (Px − c)/diag P`` against its bounds
-    (the semismooth Newton update); an active set that no longer changes is the optimum. Once
-    only a few variables change per step, the steps run on windows of ``WINDOW`` frames around
-    them, the rest of the take held, and the whole take is checked again after each.
+    Parameters
+    ----------
+    G : (n_frames, K, K) float, ``Aᵀ V_t A`` (any value where not ``valid``)
+    C : (n_frames, K) float, ``Aᵀ V_t b_t``
+    sq : (n_frames,) float, ``b_tᵀ V_t b_t``
+    valid : (n_frames,) bool, frames with a data term
+    mu : float > 0
+    upper : (K,) float, ``inf`` where unbounded
+    tol : float, the relative duality gap certified (a ConvergenceWarning when the steps stop
+        above ``max(1e-4, 100 tol)``)
+
+    Returns
+    -------
+    (n_frames, K) float within the bounds. Should the Hessian not be positive definite
+    (rank-deficient keys with frames that see too little), a ridge of ``1e-10 · max |G|`` is
+    added to every ``G_t``, as the per-frame solver does; None if even that fails.
     """
-    from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
-
-    n, K = B.shape[0], A.shape[1]
-    seen = np.isfinite(B).all(axis=1)
-    if n < 3 or not seen.any() or (W is not None and not np.isfinite(W).all()):
-        return None
-    v = np.where(seen[:, None], weight, 0.0)
-    G = np.einsum("mk,tm,ml->tkl", A, v, A)  # (n, K, K)
-    c = (v * np.where(seen[:, None], B, 0.0)) @ A  # (n, K)
-    d0, d1, d2 = second_difference_gram(n)
-    band = np.zeros((2 * K + 1, n * K))  # lower form: band[i, j] = P[j + i, j]
-    for i in range(K):  # within a frame: P[tK + k + i, tK + k] = G_t[k + i, k]
-        rows = np.zeros((n, K))
-        rows[:, : K - i] = np.diagonal(G, offset=-i, axis1=1, axis2=2)
-        band[i] += rows.ravel()
-    band[0] += mu * np.repeat(d0, K)
-    band[K, : (n - 1) * K] += mu * np.repeat(d1, K)
-    band[2 * K, : (n - 2) * K] += mu * np.repeat(d2, K)
-    diag = band[0].reshape(n, K)
-    top = np.broadcast_to(np.where(np.isfinite(upper), upper, np.inf), (n, K))
-
-    def hessian(X, lo=0, hi=n):
-        """Rows lo..hi-1 of ``P X``."""
-        t = np.arange(lo, hi)
-        out = np.einsum("tkl,tl->tk", G[lo:hi], X[lo:hi]) + mu * d0[lo:hi, None] * X[lo:hi]
-        for step, diagonal in ((1, d1), (2, d2)):
-            back, ahead = t >= step, t + step < n
-            out[back] += mu * diagonal[t[back] - step, None] * X[t[back] - step]
-            out[ahead] += mu * diagonal[t[ahead], None] * X[t[ahead] + step]
+    n, K = C.shape
+    out = np.full((n, K), np.nan)
+    rows = np.flatnonzero(valid)
+    if not len(rows):
         return out
-
-    def update(X, lo=0, hi=n):
-        """The semismooth Newton states of frames lo..hi-1."""
-        y = X[lo:hi] - (hessian(X, lo, hi) - c[lo:hi]) / diag[lo:hi]
-        # within _SLACK of a bound counts as on it: a weight at 1e-13 with a multiplier of -1e-13
-        # would otherwise flip between free and bound for ever (degenerate variables)
-        return np.where(y <= _SLACK, -1, np.where(y >= top[lo:hi] - _SLACK, 1, 0))
-
-    def solve_range(X, state, lo, hi):
-        """Frames lo..hi-1 of X (in place) on the exact minimiser of their face, the others held."""
-        sub = state[lo:hi]
-        fixed = np.where(sub == 1, top[lo:hi], 0.0)
-        X[lo:hi] = fixed
-        free = (sub == 0).ravel()
-        rhs = (c[lo:hi] - hessian(X, lo, hi)).ravel()
-        face = buffer[:, : (hi - lo) * K]
-        np.copyto(face, band[:, lo * K : hi * K])
-        for i in range(1, 2 * K + 1):  # no coupling past the range's end
-            face[i, face.shape[1] - i :] = 0.0
-        face[:, ~free] = 0.0  # fixed columns ...
-        for i in range(1, 2 * K + 1):  # ... and rows: P[j + i, j] with j + i fixed
-            face[i, : free.size - i][~free[i:]] = 0.0
-        face[0, ~free] = 1.0
-        factor = cholesky_banded(face, lower=True, overwrite_ab=True, check_finite=False)
-        x = cho_solve_banded((factor, True), np.where(free, rhs, 0.0), overwrite_b=True, check_finite=False)
-        X[lo:hi] = np.where(free.reshape(-1, K), x.reshape(-1, K), fixed)
-        return X
-
-    buffer = np.empty_like(band)  # the face systems, one at a time
-    X = np.zeros((n, K)) if W is None else np.clip(W, 0.0, top)
-    state = np.zeros((n, K), np.int64) if W is None else np.where(X <= 0.0, -1, np.where(X >= top, 1, 0))
-    few = max(8, n * K // FEW)
-    least, since = np.inf, 0
-    try:
-        for _ in range(MAX_EXCHANGES):
-            X = solve_range(X, state, 0, n)  # a face of the whole take: exact everywhere
-            new = update(X)
-            changed = new != state
-            state = new
-            if not changed.any():
-                return X, True
-            least, since = (changed.sum(), 0) if changed.sum() < least else (least, since + 1)
-            if since >= STALL:  # the exchanges cycle: hand over to majorise-minimise from here
-                break
-            for _ in range(WINDOW_ROUNDS if changed.sum() <= few else 0):  # few changes: windows around them
-                for lo, hi in _windows(np.flatnonzero(changed.any(axis=1)), n):
-                    for _ in range(MAX_EXCHANGES):
-                        X = solve_range(X, state, lo, hi)
-                        new = update(X, lo, hi)
-                        inside = (new != state[lo:hi]).any()
-                        state[lo:hi] = new
-                        if not inside:
-                            break
-                new = update(X)
-                changed = new != state
-                state = new
-                if not changed.any() or changed.sum() > few:
-                    break
-    except LinAlgError:
+    span = slice(rows[0], rows[-1] + 1)  # gaps inside are bridged, the ends are not extrapolated
+    seen = valid[span]
+    Gs, Cs = np.ascontiguousarray(G[span], dtype=float), np.ascontiguousarray(C[span], dtype=float)
+    if not seen.all() and (Gs[~seen].any() or Cs[~seen].any()):  # frames without data: no data term
+        Gs, Cs = np.where(seen[:, None, None], Gs, 0.0), np.where(seen[:, None], Cs, 0.0)
+    const = float(np.sum(sq[span][seen]))
+    if len(seen) < 3:  # no second difference: frame by frame
+        for i in range(len(seen)):
+            out[span.start + i] = nnls_gram(Gs[i], Cs[i][None], upper, False)[0]
+        return out
+    found = None
+    for ridge in (0.0, 1e-10):  # rank-deficient keys: the smallest-norm blend of the equally good ones
+        if ridge:
+            Gs = Gs + ridge * float(np.abs(Gs).max()) * np.eye(K)
+        try:
+            found = _exact(Gs, Cs, const, mu, upper, tol=tol, valid=seen)
+        except np.linalg.LinAlgError:
+            found = None
+        if found is not None:
+            break
+    if found is None:
         return None
-    return np.clip(X, 0.0, top), False
-
-
-WINDOW = 40  # frames on either side of a change that a window step re-solves
-FEW = 100  # windows once at most 1 in FEW variables changes in a step
-STALL = 5  # steps on the whole take without fewer changes than before: the exchanges cycle
-_SLACK = 1e-10  # weights (of order 1) this close to a bound are on it
-WINDOW_ROUNDS = 8  # sweeps of windows between two steps on the whole take
-
-
-def _windows(frames: np.ndarray, n: int):
-    """Disjoint ranges ``(lo, hi)`` covering ``WINDOW`` frames around each of ``frames``."""
-    out = []
-    for f in np.sort(frames):
-        lo, hi = max(int(f) - WINDOW, 0), min(int(f) + WINDOW + 1, n)
-        if out and lo <= out[-1][1] + 2:
-            out[-1] = (out[-1][0], hi)
-        else:
-            out.append((lo, hi))
+    X, gap = found
+    if gap > max(_WARN_GAP, 100.0 * tol):
+        warnings.warn(f"the visibility-weighted smoothed solve stopped at a certified relative gap of {gap:.1e} "
+                      f"(asked: {tol:.0e})", ConvergenceWarning, stacklevel=3)
+    out[span] = X
     return out
 
 
@@ -241,7 +232,7 @@ def _majorise(A, B, v, partial, W, solve):
     (W_k − W_{k−1})``, restarted whenever a step turns back (O'Donoghue & Candès 2015).
     """
     seen, Y, momentum = v * B[partial], W, 1.0
-    for _ in range(MAX_STEPS):
+    for _ in range(MAX_MM_STEPS):
         B[partial] = seen + (1.0 - v) * (Y[partial] @ A.T)  # b̃_t = v ⊙ b_t + (1 − v) ⊙ A y_t
         new = solve(B)
         move = new - W
@@ -253,6 +244,262 @@ def _majorise(A, B, v, partial, W, solve):
         following = (1.0 + np.sqrt(1.0 + 4.0 * momentum**2)) / 2.0
         Y = new + ((momentum - 1.0) / following) * move
         W, momentum = new, following
-    warnings.warn(f"the visibility-weighted solve stopped after {MAX_STEPS} steps with weights still moving by "
+    warnings.warn(f"the visibility-weighted solve stopped after {MAX_MM_STEPS} steps with weights still moving by "
                   f"{step:.2g}", ConvergenceWarning, stacklevel=4)
     return W
+
+
+# --------------------------------------------------------------------------- the exact solve in Gram form
+
+
+def weighted_gram(A: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """``G_t = Aᵀ V_t A`` of every frame, ``(n, K, K)``, as one product: ``G = weight @ H`` with
+    ``H_i = a_i a_iᵀ`` the outer product of row ``i`` of ``A`` (rows of one landmark summed
+    when ``weight`` repeats each landmark's visibility over its coordinates, as
+    :func:`coordinate_weights` does)."""
+    m, K = A.shape
+    n = weight.shape[0]
+    H = (A[:, :, None] * A[:, None, :]).reshape(m, K * K)
+    for d in (3, 2):
+        if m % d == 0 and m > d and np.array_equal(weight[:, ::d].repeat(d, axis=1), weight):
+            H, weight = H.reshape(m // d, d, K * K).sum(axis=1), weight[:, ::d]
+            break
+    return np.ascontiguousarray(weight @ H).reshape(n, K, K)
+
+
+class _Problem:
+    """The weighted QP of one region in Gram form: ``G (T, K, K)``, ``C (T, K)``, ``μ``, bounds;
+    exact solves of a face on any frames with the others held, and KKT violations."""
+
+    def __init__(self, G, C, mu, upper):
+        from . import _kernels, _kernels_weighted
+
+        self.k0, self.kw = _kernels, _kernels_weighted
+        self.G, self.C, self.mu = np.ascontiguousarray(G, dtype=float), np.ascontiguousarray(C, dtype=float), float(mu)
+        n, K = self.C.shape
+        self.upper = np.asarray(upper, dtype=float)
+        self.top = np.where(np.isfinite(self.upper), self.upper, 0.0)
+        d0, d1, d2 = second_difference_gram(n)
+        self.d = (d0, np.append(d1, np.zeros(n - len(d1))), np.append(d2, np.zeros(n - len(d2))))
+        self.every = np.arange(n)
+        # the band of the face being solved: room for every variable free, but only the pages a face
+        # uses are ever touched (first touch costs a page fault; a buffer allocated anew would pay again)
+        self.buffer = np.empty(n * K * (2 * K + 1))
+        self.rhs = np.empty(n * K)
+        diagonal = np.einsum("tkk->tk", self.G)  # |G_ij| <= max(G_ii, G_jj): G_t is positive semi-definite
+        self.g_scale = float(np.abs(self.C).max(initial=0.0) + diagonal.max(initial=0.0) + mu)
+
+    def hess(self, X, rows):
+        """``(P X)`` on the frames ``rows``: ``(len(rows), K)``."""
+        out = np.empty((len(rows), X.shape[1]))
+        self.kw.hessian_at(self.G, self.mu, *self.d, X, rows, out)
+        return out
+
+    def solve(self, X, state, rows):
+        """Frames ``rows`` (sorted) of ``X`` (in place) on the exact minimiser of their face, the
+        other frames held: the free variables numbered in order, their band
+        (:func:`keyshape.decompose._kernels_weighted.face_system`) factored by LAPACK's banded
+        Cholesky (``dpbtrf``)."""
+        from scipy.linalg import lapack
+
+        pos = np.empty((len(rows), X.shape[1]), np.int64)
+        n_free, kd = self.kw.face_system(self.G, self.C, self.mu, *self.d, self.top, state, X, rows, pos,
+                                         self.buffer, self.rhs)
+        if not n_free:
+            return
+        band = self.buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
+        factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)  # band.T: LAPACK's lower storage
+        if info != 0:
+            raise np.linalg.LinAlgError("banded Cholesky failed on a face: not positive definite")
+        x, info = lapack.dpbtrs(factor, self.rhs[:n_free], lower=1)
+        free = pos >= 0
+        sub = X[rows]
+        sub[free] = x
+        X[rows] = sub
+
+    def violations(self, X, state, rows):
+        """Dimensionless KKT violations ``(len(rows), K)`` on the current face (> 0: changes side)."""
+        out = np.empty((len(rows), X.shape[1]))
+        x_scale = self.x_scale(X)
+        self.kw.kkt(self.G, self.C, self.mu, *self.d, X, state, self.upper, rows, x_scale, self.g_scale * x_scale, out)
+        return out
+
+    def x_scale(self, X):
+        """``1 + max |x|``: the bounds' when every weight is bounded (cheap on a few frames)."""
+        if np.isfinite(self.upper).all():
+            return 1.0 + float(self.upper.max(initial=0.0))
+        return 1.0 + float(np.abs(X).max(initial=0.0))
+
+
+class _Certificate:
+    """The factor of the whole ``P`` (every variable free) and the duality bound it gives:
+    ``q(y) = const − (c − y)ᵀP⁻¹(c − y) − 2σ_C(y) ≤ F*`` for multipliers ``y`` read off a
+    feasible point (as :func:`keyshape.decompose._sequence.lower_bound`, with this ``P``)."""
+
+    def __init__(self, problem: _Problem, const: float):
+        from scipy.linalg import lapack
+
+        self.problem, self.const, self.lapack = problem, float(const), lapack
+        n, K = problem.C.shape
+        buffer, pos = np.empty(n * K * (2 * K + 1)), np.empty((n, K), np.int64)
+        n_free, kd = problem.kw.face_system(problem.G, problem.C, problem.mu, *problem.d, problem.top,
+                                            np.full((n, K), FREE, np.int8), np.zeros((n, K)), problem.every, pos,
+                                            buffer, np.empty(n * K))
+        band = buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
+        self.factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)
+        self.ok = info == 0
+        self.F, self.q, self.Z = np.inf, -np.inf, None
+
+    def inverse(self, R):
+        """``P⁻¹ R`` for ``R (T, K)``."""
+        x, _ = self.lapack.dpbtrs(self.factor, np.ravel(R), lower=1)
+        return x.reshape(R.shape)
+
+    def offer(self, Z):
+        """Keep the feasible ``Z`` if it is the best point yet; raise the bound with its
+        multipliers; the certified relative gap."""
+        p = self.problem
+        PZ = p.hess(Z, p.every)
+        F = float(np.einsum("tk,tk->", Z, PZ - 2.0 * p.C) + self.const)
+        if F < self.F:
+            self.F, self.Z = F, Z
+        Y = np.empty_like(Z)
+        p.k0.point_multipliers(p.C - PZ, Z, p.upper, False, Y)
+        Y = np.where(np.isfinite(p.upper), Y, np.minimum(Y, 0.0))
+        R = p.C - Y
+        support = 2.0 * float(np.sum(np.maximum(Y, 0.0) * p.top))  # 2σ_C(y): the box's
+        q = self.const - float(np.einsum("tk,tk->", R, self.inverse(R))) - support
+        self.q = max(self.q, q)
+        return self.gap
+
+    @property
+    def gap(self) -> float:
+        """``(F − q) / F`` (for a near-exact fit, relative to ``1e-6 · const`` instead)."""
+        return max(self.F - self.q, 0.0) / max(abs(self.F), 1e-6 * self.const, np.finfo(float).tiny)
+
+
+class _Damping:
+    """Should the exchanges stop shrinking, only the largest violations move: half as many
+    each time (they cycle on degenerate problems, e.g. near-duplicate keys)."""
+
+    def __init__(self):
+        self.limit, self.history = None, []
+
+    def __call__(self, count):
+        self.history.append(count)
+        if len(self.history) > 3 and count >= self.history[-4]:
+            self.limit = max(1, (self.limit or count) // 2)
+            self.history.clear()
+
+
+def _exchange(X, state, rows, viol, limit=None, flips=None):
+    """The primal–dual active-set update of ``state`` on ``rows`` (in place): (count of
+    violations, (len(rows),) bool rows that had one).
+
+    ``limit``: only that many of the largest violations move. ``flips (T, K)``: how often each
+    variable changed side so far (updated); a variable that went back and forth
+    (:data:`CYCLING` changes) moves only if it has the largest violation among such variables
+    of its window (runs of ``rows``), which breaks the cycles of degenerate problems locally.
+    """
+    move = viol > _KKT_TOL
+    count = int(move.sum())
+    wrong = move.any(axis=1)
+    if limit is not None and count > limit:
+        move &= viol >= np.partition(viol.ravel(), -limit)[-limit]
+    if flips is not None:
+        cycling = move & (flips[rows] >= CYCLING)
+        if cycling.any():
+            run = np.cumsum(np.append(True, np.diff(rows) > 2 * SMALL + 1)) - 1  # (len(rows),) window
+            score = np.where(cycling, viol, -np.inf).max(axis=1)
+            top = np.full(run[-1] + 1, -np.inf)
+            np.maximum.at(top, run, score)
+            keep = cycling & (viol >= top[run][:, None])
+            move &= ~cycling | keep
+        flips[rows] += move
+    sub = state[rows]
+    state[rows] = np.where(move, np.where(sub == FREE, np.where(X[rows] < 0.0, LOWER, UPPER), FREE), sub)
+    return count, wrong
+
+
+def _around(frames, reach, n):
+    """The sorted frames within ``reach`` of any of ``frames``."""
+    if not len(frames):
+        return frames
+    near = (np.asarray(frames)[:, None] + np.arange(-reach, reach + 1)).ravel()
+    return np.unique(near[(near >= 0) & (near < n)])
+
+
+def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
+    """Minimiser ``(T, K)`` of the weighted smoothed QP in Gram form and its certified relative
+    gap: 0 when a face of the whole take meets the KKT conditions (the exact optimum), else the
+    duality gap (see the module notes); LinAlgError when ``P`` is not positive definite.
+    ``valid``: the frames with data (default: those with a nonzero ``G_t``). ``trace``: a list
+    that gets one entry per step on the whole take and per local step (for the benchmarks)."""
+    problem = _Problem(G, C, mu, upper)
+    n, K = problem.C.shape
+    valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
+    state = np.full((n, K), FREE, np.int8)  # each frame's own active set, then Gauss-Seidel sweeps
+    X = np.empty((n, K))
+    bounded = bool(np.isfinite(problem.upper).any())
+    problem.kw.start(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, valid, state, X, SWEEPS)
+    damping, cert = _Damping(), None
+    for step in range(MAX_STEPS):
+        problem.solve(X, state, problem.every)  # a face of the whole take: exact everywhere
+        viol = problem.violations(X, state, problem.every)
+        count, wrong = _exchange(X, state, problem.every, viol, damping.limit)
+        if count == 0:  # the KKT conditions hold: the optimum (to rounding)
+            return np.clip(X, 0.0, problem.upper), 0.0
+        if cert is None and (damping.limit is not None or step >= MAX_STEPS // 2):  # slow: a bound to stop on
+            cert = _Certificate(problem, const)
+            if not cert.ok:
+                raise np.linalg.LinAlgError("the weighted smoothed QP is not positive definite")
+        gap = np.inf if cert is None else cert.offer(np.clip(X, 0.0, problem.upper))
+        if trace is not None:
+            trace.append(("whole", count, gap))
+        if gap <= tol:
+            break
+        damping(count)
+        if count <= max(8, n * K // FEW):  # few changes: local steps around them
+            _local(problem, X, state, np.flatnonzero(wrong), trace)
+    if cert is None:
+        cert = _Certificate(problem, const)
+        if not cert.ok:
+            raise np.linalg.LinAlgError("the weighted smoothed QP is not positive definite")
+    cert.offer(np.clip(X, 0.0, problem.upper))
+    return cert.Z, cert.gap
+
+
+def _local(problem, X, state, hot, trace=None):
+    """Active-set steps on the frames within :data:`SMALL` of the latest changes, the rest of
+    the take held, until none is left; then one exact face on the frames within
+    :data:`WINDOW` of every change, and again should that find more (``X``, ``state`` in place)."""
+    n = len(X)
+    moving = _around(hot, SMALL, n)
+    touched = np.zeros(n, bool)
+    touched[hot] = True
+    final, flips = False, np.zeros(X.shape, np.int16)
+    for _ in range(MAX_LOCAL):
+        problem.solve(X, state, moving)
+        check = _around(moving, 2, n)  # the frames whose KKT conditions the step changed
+        viol = problem.violations(X, state, check)
+        count, wrong = _exchange(X, state, check, viol, flips=flips)
+        if trace is not None:
+            trace.append((len(moving), count))
+        if count == 0:
+            if final:
+                return
+            final = True
+            moving = np.flatnonzero(_dilate(touched, WINDOW))
+            touched[:] = False  # the next exact round covers only what changes after this one
+            continue
+        final = False
+        touched[check[wrong]] = True
+        moving = _around(check[wrong], SMALL, n)
+
+
+def _dilate(mask, reach):
+    """(T,) bool: the frames within ``reach`` of a True one."""
+    count = np.concatenate([[0], np.cumsum(mask)])
+    n = len(mask)
+    t = np.arange(n)
+    return count[np.minimum(t + reach + 1, n)] - count[np.maximum(t - reach, 0)] > 0

@@ -1,0 +1,319 @@
+"""Compiled loops of the visibility-weighted smoothed solve (:mod:`keyshape.decompose._weighted`).
+
+Compiled with the decorator of :mod:`keyshape.decompose._kernels`, where numba is imported. The
+weighted QP has one Gram matrix per frame, ``G_t = Aᵀ V_t A`` (zero in a gap), so its Hessian
+``P = blockdiag(G_t) + μ LᵀL ⊗ I`` is block pentadiagonal without the shared eigenbasis of the
+unweighted one: these kernels build and apply it directly, frame-major (``x[t·K + k] = w_t[k]``).
+
+Every kernel works on a sorted list of frames ``rows`` of the take (all of them, or windows
+around the changes of an active-set step) and costs only those: a step on a few windows of a
+long take costs the windows. A face's system is built on its free variables only, numbered in
+order (:func:`compact_index`, :func:`compact_band`), as a band that LAPACK's banded Cholesky
+(``dpbtrf``) factors: 2–3 times the speed of a compiled loop on a band ``2K`` wide.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._kernels import jit
+from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER, _subspace_minimiser
+
+
+@jit
+def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
+    """``min ½xᵀGx − cᵀx`` s.t. ``0 ≤ x ≤ u`` by block principal pivoting from the state ``s``
+    (updated in place), as :func:`keyshape.decompose._kernels_nnls.block_pivoting` does for one
+    row, on the caller's work arrays; ``x`` gets the last subspace minimiser (clipped). True
+    if it meets the KKT conditions (to ``1e-11`` of the row's scale); a row where the exchanges
+    stall keeps where it stopped (a start for the take's QP all the same)."""
+    K = c.shape[0]
+    g_max, c_max = 0.0, 0.0
+    for i in range(K):
+        c_max = max(c_max, abs(c[i]))
+        for j in range(K):
+            g_max = max(g_max, abs(G[i, j]))
+    best, budget, solved = K + 1, 3, False
+    for _ in range(2 * K + 10):
+        if not _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
+            break
+        scale = 1.0
+        for i in range(K):
+            scale = max(scale, 1.0 + abs(x[i]))
+        tol_x, tol_y = KKT_TOL * scale, KKT_TOL * (c_max + g_max * scale)
+        n_bad = 0
+        for i in range(K):  # the exchange: rhs[i] marks a variable that changes side
+            if s[i] == FREE:
+                b = x[i] < -tol_x or (bounded and x[i] > upper[i] + tol_x)
+            else:
+                y = -c[i]
+                for j in range(K):
+                    y += G[i, j] * x[j]
+                b = y > tol_y if s[i] == UPPER else y < -tol_y
+            idx[i] = 1 if b else 0
+            n_bad += b
+        if n_bad == 0:
+            solved = True
+            break
+        if n_bad < best:
+            best, budget = n_bad, 3
+        else:
+            budget -= 1
+            if budget < 0:
+                break
+        for i in range(K):
+            if idx[i]:
+                if s[i] == FREE:
+                    s[i] = LOWER if x[i] < 0.0 else UPPER
+                else:
+                    s[i] = FREE
+    for i in range(K):
+        x[i] = min(max(x[i], 0.0), upper[i])
+    return solved
+
+
+@jit
+def _active_finish(G, c, upper, bounded, s, x, L, rhs, idx, z):
+    """Primal active-set iterations (Nocedal & Wright 2006, Alg. 16.3) for ``min ½xᵀGx − cᵀx``,
+    ``0 ≤ x ≤ u``, from the feasible ``x`` (its state ``s`` consistent with it), in place:
+    monotone, so it ends where block principal pivoting stalls (degenerate rows: near-duplicate
+    keys). True at the optimum (to ``1e-11`` of the row's scale); False on a singular free block
+    or when out of iterations."""
+    K = c.shape[0]
+    g_max, c_max = 0.0, 0.0
+    for i in range(K):
+        c_max = max(c_max, abs(c[i]))
+        for j in range(K):
+            g_max = max(g_max, abs(G[i, j]))
+    for _ in range(10 * K + 20):
+        if not _subspace_minimiser(G, c, upper, s, z, L, rhs, idx):
+            return False
+        alpha, block = 1.0, -1
+        for i in range(K):
+            if s[i] != FREE:
+                continue
+            if z[i] < 0.0 and z[i] < x[i]:
+                a = x[i] / (x[i] - z[i])
+                if a < alpha:
+                    alpha, block = a, i
+            elif bounded and z[i] > upper[i] and z[i] > x[i]:
+                a = (upper[i] - x[i]) / (z[i] - x[i])
+                if a < alpha:
+                    alpha, block = a, i
+        for i in range(K):
+            x[i] += alpha * (z[i] - x[i])
+        if block >= 0:  # a free variable reached its bound first: it joins the bounds
+            if x[block] <= 0.5 * upper[block] or not bounded:
+                s[block], x[block] = LOWER, 0.0
+            else:
+                s[block], x[block] = UPPER, upper[block]
+            continue
+        scale = 1.0
+        for i in range(K):
+            scale = max(scale, 1.0 + abs(x[i]))
+        tol_y = KKT_TOL * (c_max + g_max * scale)
+        worst, size = -1, tol_y
+        for i in range(K):  # at the face's minimiser: the bound with the most wrong-signed multiplier leaves
+            if s[i] == FREE:
+                continue
+            y = -c[i]
+            for j in range(K):
+                y += G[i, j] * x[j]
+            wrong = -y if s[i] == LOWER else y
+            if wrong > size:
+                worst, size = i, wrong
+        if worst < 0:
+            return True
+        s[worst] = FREE
+    return False
+
+
+@jit
+def frames_solve(G, C, upper, bounded, valid, X, stalled):
+    """Every frame's own box QP, ``min ½wᵀG_t w − c_tᵀw``, ``0 ≤ w ≤ u``, equilibrated, by block
+    principal pivoting from all free, finished by primal active-set iterations where the
+    exchanges stall: ``X (T, K)``; ``stalled (T,)`` marks the frames (with data) that even
+    those did not finish, for the caller. Frames without data are left."""
+    T, K = C.shape
+    L = np.zeros((K, K))
+    rhs, idx = np.empty(K), np.empty(K, np.int64)
+    state = np.empty(K, np.int8)
+    H, c, u, d, x, z = np.empty((K, K)), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K)
+    for t in range(T):
+        stalled[t] = False
+        if not valid[t]:
+            continue
+        for k in range(K):  # equilibrated, w = D v with D = diag(G_t)^(-1/2), as nnls_gram does
+            state[k] = FREE
+            d[k] = 1.0 / np.sqrt(G[t, k, k]) if G[t, k, k] > 0.0 else 1.0
+        for a in range(K):
+            c[a] = C[t, a] * d[a]
+            u[a] = upper[a] / d[a]
+            for b in range(K):
+                H[a, b] = d[a] * G[t, a, b] * d[b]
+        if not _box_qp(H, c, u, bounded, state, x, L, rhs, idx):  # stalled: the monotone finish
+            for k in range(K):
+                state[k] = LOWER if x[k] <= 0.0 else (UPPER if x[k] >= u[k] else FREE)
+            stalled[t] = not _active_finish(H, c, u, bounded, state, x, L, rhs, idx, z)
+        for k in range(K):
+            X[t, k] = min(x[k] * d[k], upper[k])
+
+
+@jit
+def start(G, C, mu, d0, d1, d2, upper, bounded, valid, state, X, n_sweeps):
+    """A first point ``X (T, K)`` and its active set ``state`` (FREE on entry).
+
+    Every frame's own box QP first (no smoothness), ``min ½wᵀG_t w − c_tᵀw``, by block
+    principal pivoting (a frame without data takes the frame's before it); then ``n_sweeps``
+    symmetric block Gauss–Seidel sweeps over the frames of the whole QP: each frame's box QP
+    ``min wᵀ(G_t + μ d0_t I)w − 2 wᵀ(c_t − μ Σ_s (LᵀL)_{ts} w_s)``, its neighbours ``s`` at their
+    latest values, forward, then backward. Monotone in the objective, and a sweep carries a
+    change along the whole take, where active-set steps move the edge of a run of free weights
+    by about a frame per step. A start, not a solution.
+    """
+    T, K = C.shape
+    L = np.zeros((K, K))
+    rhs, idx = np.empty(K), np.empty(K, np.int64)
+    for t in range(T):
+        if not valid[t]:
+            for k in range(K):
+                state[t, k] = state[t - 1, k] if t > 0 else FREE
+                X[t, k] = X[t - 1, k] if t > 0 else 0.0
+            continue
+        _box_qp(G[t], C[t], upper, bounded, state[t], X[t], L, rhs, idx)
+    H = np.empty((K, K))
+    r = np.empty(K)
+    for sweep in range(2 * n_sweeps):
+        for i in range(T):
+            t = i if sweep % 2 == 0 else T - 1 - i
+            for a in range(K):
+                s = 0.0
+                if t >= 1:
+                    s += d1[t - 1] * X[t - 1, a]
+                if t >= 2:
+                    s += d2[t - 2] * X[t - 2, a]
+                if t + 1 < T:
+                    s += d1[t] * X[t + 1, a]
+                if t + 2 < T:
+                    s += d2[t] * X[t + 2, a]
+                r[a] = C[t, a] - mu * s
+                for b in range(K):
+                    H[a, b] = G[t, a, b]
+                H[a, a] += mu * d0[t]
+            _box_qp(H, r, upper, bounded, state[t], X[t], L, rhs, idx)
+    for t in range(T):
+        for k in range(K):
+            state[t, k] = LOWER if X[t, k] <= 0.0 else (UPPER if X[t, k] >= upper[k] else FREE)
+
+
+@jit
+def _product(G, mu, d0, d1, d2, X, t, k):
+    """``(P X)_{t,k} = (G_t x_t)_k + μ (LᵀL X)_{t,k}``."""
+    T, K = X.shape
+    s = 0.0
+    for m in range(K):
+        s += G[t, k, m] * X[t, m]
+    r = d0[t] * X[t, k]
+    if t >= 1:
+        r += d1[t - 1] * X[t - 1, k]
+    if t >= 2:
+        r += d2[t - 2] * X[t - 2, k]
+    if t + 1 < T:
+        r += d1[t] * X[t + 1, k]
+    if t + 2 < T:
+        r += d2[t] * X[t + 2, k]
+    return s + mu * r
+
+
+@jit
+def hessian_at(G, mu, d0, d1, d2, X, rows, out):
+    """``out[i] = (P X)_t`` for the frames ``t = rows[i]``; ``G (T, K, K)``, ``X (T, K)``;
+    ``d0, d1, d2 (T,)`` the diagonals of ``LᵀL``, zero-padded."""
+    for i in range(rows.shape[0]):
+        for k in range(X.shape[1]):
+            out[i, k] = _product(G, mu, d0, d1, d2, X, rows[i], k)
+
+
+@jit
+def face_system(G, C, mu, d0, d1, d2, top, state, X, rows, pos, buffer, rhs):
+    """The face of the frames ``rows`` (sorted; the other frames held at ``X``) as a banded
+    system on its free variables only: returns ``(n_free, kd)``.
+
+    Sets the bound variables of ``rows`` in ``X`` to their bounds (``top``: the upper bounds, 0
+    where there are none) and the free ones to 0; numbers the free variables in order into
+    ``pos (len(rows), K)`` (−1 where fixed); fills ``buffer[: n_free·(kd + 1)]``, seen as
+    ``(n_free, kd + 1)``, with ``band[p, o] = M[p + o, p]`` (its transpose is LAPACK's lower band
+    storage, for ``dpbtrf``), and ``rhs[: n_free]`` with ``c − P X`` there. A free variable is
+    coupled to the free ones of its frame and to its key in the next two frames (when those are
+    among ``rows``), so ``kd`` is at most ``2K``.
+    """
+    n = rows.shape[0]
+    K = X.shape[1]
+    p = 0
+    for i in range(n):
+        t = rows[i]
+        for a in range(K):
+            s = state[t, a]
+            X[t, a] = top[a] if s == UPPER else 0.0
+            if s == FREE:
+                pos[i, a] = p
+                p += 1
+            else:
+                pos[i, a] = -1
+    kd = 0
+    for i in range(n):
+        last = -1
+        for a in range(K):
+            last = max(last, pos[i, a])
+        near = i + 1 < n and rows[i + 1] == rows[i] + 1
+        far = i + 2 < n and rows[i + 2] == rows[i] + 2
+        for a in range(K):
+            q = pos[i, a]
+            if q < 0:
+                continue
+            reach = last
+            if near:
+                reach = max(reach, pos[i + 1, a])
+            if far:
+                reach = max(reach, pos[i + 2, a])
+            kd = max(kd, reach - q)
+    W = kd + 1
+    band = buffer[: p * W].reshape((p, W))
+    for i in range(n):
+        t = rows[i]
+        near = i + 1 < n and rows[i + 1] == t + 1
+        far = i + 2 < n and rows[i + 2] == t + 2
+        for a in range(K):
+            q = pos[i, a]
+            if q < 0:
+                continue
+            for o in range(W):
+                band[q, o] = 0.0
+            band[q, 0] = G[t, a, a] + mu * d0[t]
+            for b in range(a + 1, K):
+                if pos[i, b] >= 0:
+                    band[q, pos[i, b] - q] = G[t, b, a]
+            if near and pos[i + 1, a] >= 0:
+                band[q, pos[i + 1, a] - q] = mu * d1[t]
+            if far and pos[i + 2, a] >= 0:
+                band[q, pos[i + 2, a] - q] = mu * d2[t]
+            rhs[q] = C[t, a] - _product(G, mu, d0, d1, d2, X, t, a)
+    return p, kd
+
+
+@jit
+def kkt(G, C, mu, d0, d1, d2, X, state, upper, rows, x_scale, g_scale, out):
+    """Dimensionless KKT violations ``out (len(rows), K)`` of ``X`` on its face (``state``: 0 at
+    the lower bound, 1 free, 2 at the upper one), with ``g = c − P X``: positive where the
+    variable changes side in a primal–dual active-set step (a free one out of its box, a bound
+    one pulled inside)."""
+    K = X.shape[1]
+    for i in range(rows.shape[0]):
+        t = rows[i]
+        for k in range(K):
+            s = state[t, k]
+            if s == FREE:
+                out[i, k] = max(-X[t, k], X[t, k] - upper[k]) / x_scale
+            else:
+                g = C[t, k] - _product(G, mu, d0, d1, d2, X, t, k)
+                out[i, k] = (g if s == LOWER else -g) / g_scale
