@@ -99,11 +99,11 @@ def test_hidden_landmarks_without_smoothing_are_streamed(perf, keys, tmp_path, u
 
 
 def test_hidden_landmarks_with_convex_take_the_whole_take_path(perf, keys, tmp_path, monkeypatch):
-    from keyshape.app import _stream
+    from keyshape.app import _pipeline
 
     path = save_track(_hidden(perf), tmp_path / "hidden.npz")
-    calls = []
-    monkeypatch.setattr(_stream, "solve_take", lambda *a, **k: calls.append(k) or solve_take(*a, **k))
+    calls = []  # (_stream imports solve_take from _pipeline when it needs it)
+    monkeypatch.setattr(_pipeline, "solve_take", lambda *a, **k: calls.append(k) or solve_take(*a, **k))
     whole = solve_take(load_track(path), keys, convex=True)
     np.testing.assert_array_equal(solve_track_file(path, keys, convex=True).weights.values, whole.weights.values)
     assert len(calls) == 1
