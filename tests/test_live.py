@@ -528,3 +528,23 @@ def test_viewer_shows_live_weights_while_a_clip_plays(browser, demo_clip, clip_k
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=60)
     assert proc.returncode == 0
+
+
+def test_recording_keeps_the_whole_frames_when_a_signal_stops_a_write(tmp_path):
+    """SIGTERM between one spool file's write and the next's leaves one file a frame ahead: the
+    take is written with the frames every file holds whole."""
+    from keyshape.io import load_track, load_weights_csv
+
+    perf = make_performance(n_frames=40, n_landmarks=478)  # MediaPipe's count: the built-in character's
+    keys = KeyShapes(perf.neutral, perf.key_deltas, ["a", "b", "c", "d"], perf.extreme_frames, perf.key_regions,
+                     perf.regions)
+    rec = Recorder(tmp_path / "rec", keys, fps=30, image_size=(64, 48))
+    for t in range(4):
+        face = dataclasses.make_dataclass("Face", ["points", "scores", "matrix"])(
+            perf.track.points[t], np.zeros(52), np.eye(4))
+        rec._write(face, np.full(keys.n_keys, 0.25))
+    rec._files["points"].write(np.zeros(keys.n_landmarks * 3, np.float32).tobytes())  # a fifth frame, begun
+    rec.close()
+    assert load_track(tmp_path / "rec" / "track.npz").n_frames == 4
+    assert len(load_weights_csv(tmp_path / "rec" / "weights.csv").values) == 4
+    assert not list((tmp_path / "rec").glob(".live-spool-*"))

@@ -133,7 +133,10 @@ class Recorder:
         return min(self.n_frames, *counts)
 
     def _arrays(self) -> dict[str, np.ndarray]:
-        return {name: np.fromfile(self._spool / f"{name}.f32", dtype=np.float32).reshape(self.n_frames, size)
+        """The spool files' first :attr:`n_frames` frames (a file may hold one more, written whole
+        before a signal stopped the next file's write)."""
+        return {name: np.fromfile(self._spool / f"{name}.f32", dtype=np.float32,
+                                  count=self.n_frames * size).reshape(self.n_frames, size)
                 for name, size in self._sizes.items()}
 
     def close(self) -> None:
