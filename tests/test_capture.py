@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -42,3 +44,59 @@ def test_missing_and_non_video_files(tmp_path):
     fake.write_text("this is not a video\n" * 20)
     with pytest.raises(InputError, match=r"fake\.mp4: not a video"):
         track_video(fake, progress=False)
+
+
+def test_sigterm_while_the_landmarker_is_made_closes_it_then_terminates(monkeypatch):
+    """MediaPipe makes the landmarker on a thread of its own while the caller waits: SIGTERM
+    landing in that wait used to leave it made but never closed (its graph went on running and
+    logging after the command's last line, and could keep the process from exiting)."""
+    import signal
+
+    from mediapipe.tasks.python import vision
+
+    from keyshape.capture.mediapipe import MediaPipeTracker
+    from keyshape.cli._main import _terminate_as_interrupt
+    from keyshape.exceptions import Terminated
+
+    made, closed = [], []
+    create = vision.FaceLandmarker.create_from_options
+
+    def create_then_sigterm(options):
+        landmarker = create(options)
+        made.append(landmarker)
+        close = landmarker.close
+        landmarker.close = lambda: (closed.append(landmarker), close())
+        signal.raise_signal(signal.SIGTERM)  # as if it came while MediaPipe was still at work
+        return landmarker
+
+    monkeypatch.setattr(vision.FaceLandmarker, "create_from_options", staticmethod(create_then_sigterm))
+    try:
+        with _terminate_as_interrupt(), pytest.raises(Terminated), MediaPipeTracker():
+            pytest.fail("the tracker was handed out after SIGTERM")
+        assert closed == made != []
+    finally:
+        for landmarker in set(made) - set(closed):
+            landmarker.close()
+
+
+def test_an_interrupted_removal_of_the_spools_still_removes_them(demo_clip, tmp_path, monkeypatch):
+    """SIGTERM (or Ctrl-C) landing while the tracker removes its spool folder: the removal is finished."""
+    import shutil
+
+    from keyshape.capture import track_to_file
+    from keyshape.exceptions import Terminated
+
+    rmtree = shutil.rmtree
+    interrupted = []
+
+    def rmtree_interrupted(path, *args, **kwargs):
+        if "keyshape-track-" in str(path) and not interrupted:
+            interrupted.append(path)
+            next(p for p in Path(path).rglob("*") if p.is_file()).unlink()  # part of it is gone
+            raise Terminated()
+        return rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(shutil, "rmtree", rmtree_interrupted)
+    with pytest.raises(Terminated):
+        track_to_file(demo_clip, tmp_path / "t.npz", start=24, end=28, progress=False)
+    assert interrupted and sorted(p.name for p in tmp_path.iterdir()) == ["t.npz"]

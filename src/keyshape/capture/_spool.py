@@ -10,7 +10,9 @@ its patches from the segments' files.
 from __future__ import annotations
 
 import shutil
-from contextlib import ExitStack
+import tempfile
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Self
 
@@ -18,13 +20,33 @@ import numpy as np
 
 from .visibility import PATCH_GRID
 
-__all__ = ["N_LANDMARKS", "N_SCORES", "PATCH_SHAPE", "Spool", "Patches", "room_for_patches"]
+__all__ = ["N_LANDMARKS", "N_SCORES", "PATCH_SHAPE", "Spool", "Patches", "room_for_patches", "spool_folder"]
 
 N_LANDMARKS = 478
 N_SCORES = 52
 PATCH_SHAPE = (N_LANDMARKS, PATCH_GRID ** 2, 3)  # a frame's colour patches
 PATCH_BYTES = int(np.prod(PATCH_SHAPE)) * 4
 _NAN_PATCHES = np.full(PATCH_SHAPE, np.nan, np.float32)
+
+
+@contextmanager
+def spool_folder(parent: Path | None = None) -> Iterator[Path]:
+    """A new ``keyshape-track-*`` folder in ``parent`` (None: the system's temporary folder) for
+    a take's spools, removed with everything in it when the block ends, however it ends.
+
+    Not ``tempfile.TemporaryDirectory``: a Ctrl-C or SIGTERM landing while it removes the
+    folder (a parallel run's segments hold gigabytes of patches) stops the removal half way and
+    leaves the rest behind. Here the removal is finished first, then the interrupt goes on.
+    """
+    folder = Path(tempfile.mkdtemp(prefix="keyshape-track-", dir=parent))
+    try:
+        yield folder
+    finally:
+        try:
+            shutil.rmtree(folder, ignore_errors=True)
+        except BaseException:  # KeyboardInterrupt, Terminated
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
 
 
 def room_for_patches(folder: Path, n_frames: int) -> bool:

@@ -11,7 +11,6 @@ the output; the video is decoded again instead when they would take over half th
 
 from __future__ import annotations
 
-import tempfile
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -21,7 +20,7 @@ import numpy as np
 
 from ..containers import Track
 from ..exceptions import InputError, InputWarning, NoFaceError
-from ._spool import N_LANDMARKS, N_SCORES, Spool, room_for_patches
+from ._spool import N_LANDMARKS, N_SCORES, Spool, room_for_patches, spool_folder
 from .mediapipe import Detection, MediaPipeTracker, TrackerOptions, default_model_path
 from .video import VideoInfo, iter_frames, prefetch, probe
 from .visibility import read_patches
@@ -256,9 +255,9 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
     ------
     InputError : missing or unreadable input, bad range. NoFaceError : no face in any frame.
     """
-    with tempfile.TemporaryDirectory(prefix="keyshape-track-") as tmp:
+    with spool_folder() as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=Path(tmp), one_euro=one_euro, workers=workers)
+                             progress=progress, folder=tmp, one_euro=one_euro, workers=workers)
         arrays = spool.arrays()
         clock = spool.clock()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
@@ -280,9 +279,9 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
 
     output = Path(output)
     spool_dir = output.parent if output.parent.exists() else None
-    with tempfile.TemporaryDirectory(prefix="keyshape-track-", dir=spool_dir) as tmp:
+    with spool_folder(spool_dir) as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=Path(tmp), one_euro=one_euro, workers=workers)
+                             progress=progress, folder=tmp, one_euro=one_euro, workers=workers)
         arrays = spool.arrays()
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],

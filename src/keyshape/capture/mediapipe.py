@@ -9,7 +9,9 @@ from __future__ import annotations
 import contextlib
 import importlib
 import os
+import signal
 import sys
+import threading
 import types
 from dataclasses import dataclass
 from importlib import resources
@@ -122,32 +124,38 @@ class MediaPipeTracker:
     def __enter__(self) -> Self:
         _quiet_logs()
         try:
-            from mediapipe.tasks.python import BaseOptions, vision
+            with _signals_held():
+                from mediapipe.tasks.python import BaseOptions, vision
         except ImportError:
             raise MissingDependencyError("mediapipe") from None
         opts = self.options
         model = Path(opts.model_path or default_model_path())
         self._mp_image = _image_factory()
-        with _quiet_native_stderr():
-            self._landmarker = vision.FaceLandmarker.create_from_options(
-                vision.FaceLandmarkerOptions(
-                    base_options=BaseOptions(model_asset_path=str(model)),
-                    running_mode=vision.RunningMode.VIDEO,
-                    num_faces=opts.num_faces,
-                    min_face_detection_confidence=opts.min_detection_confidence,
-                    min_face_presence_confidence=opts.min_presence_confidence,
-                    min_tracking_confidence=opts.min_tracking_confidence,
-                    output_face_blendshapes=True,
-                    output_facial_transformation_matrixes=True,
+        try:
+            with _quiet_native_stderr(), _signals_held():  # made whole, and ours to close
+                self._landmarker = vision.FaceLandmarker.create_from_options(
+                    vision.FaceLandmarkerOptions(
+                        base_options=BaseOptions(model_asset_path=str(model)),
+                        running_mode=vision.RunningMode.VIDEO,
+                        num_faces=opts.num_faces,
+                        min_face_detection_confidence=opts.min_detection_confidence,
+                        min_face_presence_confidence=opts.min_presence_confidence,
+                        min_tracking_confidence=opts.min_tracking_confidence,
+                        output_face_blendshapes=True,
+                        output_facial_transformation_matrixes=True,
+                    )
                 )
-            )
+        except BaseException:  # a Ctrl-C or SIGTERM held meanwhile: no ``with`` block will close it
+            self.__exit__()
+            raise
         self._calls = 0
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._landmarker is not None:
-            self._landmarker.close()
-            self._landmarker = None
+        landmarker, self._landmarker = self._landmarker, None
+        if landmarker is not None:
+            with _signals_held():
+                landmarker.close()
 
     def detect(self, rgb: np.ndarray, timestamp_ms: int) -> list[Detection]:
         """Faces in one RGB frame ``(height, width, 3) uint8``."""
@@ -168,6 +176,47 @@ class MediaPipeTracker:
             matrix = np.asarray(mats[i], dtype=float) if mats else np.full((4, 4), np.nan)
             faces.append(Detection(pts, scores, matrix))
         return faces
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold Ctrl-C and SIGTERM until the block ends, then raise the first one that came.
+
+    A signal's Python handler (KeyboardInterrupt, the command's
+    :class:`~keyshape.exceptions.Terminated`) raises wherever the main thread is, and two
+    things of MediaPipe's do not survive that, so :class:`MediaPipeTracker` holds them whole:
+
+    - its import (0.2-1 s, some 190 modules, native ones among them): raised in one of
+      importlib's callbacks the exception is printed and dropped (the run goes on to the end as if
+      never stopped); raised as a native module has just initialised, the process aborts when it
+      exits ("Fatal Python error: PyThreadState_Get"); it has also come out as an ImportError
+      ("mediapipe is required").
+    - the creation and closing of its landmarker. MediaPipe runs each call of its C API on a
+      thread of its own (``SerialDispatcher``) while the caller waits: an abandoned creation
+      leaves a landmarker nobody closes, whose graph goes on writing to stderr after the command's
+      last line, and when the signal lands as that thread is being started the interpreter is
+      never told to stop it (``ThreadPoolExecutor`` registers its thread after starting it) and
+      waits for it at exit, forever. An interrupted ``detect`` is harmless: ``close`` runs after
+      it on the same thread.
+
+    Only Python handlers are held, in the main thread (the only one they run in); a signal left
+    to its default action still ends the process at once.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    held = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if callable(signal.getsignal(signum)):
+            held[signum] = signal.signal(signum, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        for signum, handler in held.items():
+            signal.signal(signum, handler)
+        if caught:
+            held[caught[0]](caught[0], None)
 
 
 @contextlib.contextmanager
