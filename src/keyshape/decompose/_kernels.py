@@ -15,12 +15,10 @@ Kernels
 * :func:`admm_step` — the relaxation, projection and dual update of one ADMM iteration, and
   the right-hand side of the next, in one pass over the data.
 * :func:`project_rows` — Euclidean projection of each row on ``{0 ≤ w ≤ u, Σ w ≤ 1}``.
-* :func:`face_band`, :func:`band_factor`, :func:`band_solve` — the Cholesky factorisation of a
-  face of the QP (block pentadiagonal, bandwidth ``2K``) that skips fixed variables: their rows
-  and columns are the identity, so only free variables cost anything.
-
-The per-frame solver's kernel (block principal pivoting) is in :mod:`keyshape.decompose._kernels_nnls`,
-compiled with this module's decorator.
+The other compiled kernels use this module's decorator: the per-frame solver's (block principal
+pivoting) in :mod:`keyshape.decompose._kernels_nnls`, the factorisation of a face of the QP over
+its free variables in :mod:`keyshape.decompose._kernels_face`, the weighted solve's in
+:mod:`keyshape.decompose._kernels_weighted`.
 
 References
 ----------
@@ -269,85 +267,3 @@ def point_multipliers(g, Z, upper, convex, Y):
             else:
                 r = 0.0
             Y[t, k] = nu + r
-
-
-# --------------------------------------------------------------------------- faces
-
-
-@jit
-def face_band(G, delta, mu, d0, d1, d2, free, sums, rho_s, band):
-    """Fill ``band``, zeros on entry, with the lower band ``(T·K, 2K + 1)`` of the face
-    system, frame-major (row ``j = t·K + i``).
-
-    ``band[j, o] = M[j + o, j]``: free rows and columns hold ``P + ρ_s Σ_{active t} 1 1ᵀ``
-    (``P = blockdiag(δ_t G) + μ LᵀL ⊗ I``, ``d0, d1, d2 (T,)`` the diagonals of ``LᵀL``),
-    fixed ones the identity. Offsets ``o < K − i`` stay in frame ``t``; ``o = K`` and
-    ``o = 2K`` reach key ``i`` in frames ``t + 1`` and ``t + 2``; all others are zero.
-    """
-    T, K = free.shape
-    for t in range(T):
-        pen = rho_s if sums[t] else 0.0
-        for i in range(K):
-            j = t * K + i
-            if not free[t, i]:
-                band[j, 0] = 1.0
-                continue
-            for o in range(K - i):
-                if free[t, i + o]:
-                    band[j, o] = delta[t] * G[i + o, i] + pen
-            band[j, 0] += mu * d0[t]
-            if t + 1 < T and free[t + 1, i]:
-                band[j, K] = mu * d1[t]
-            if t + 2 < T and free[t + 2, i]:
-                band[j, 2 * K] = mu * d2[t]
-
-
-@jit
-def band_factor(band, free):
-    """Cholesky ``M = L Lᵀ`` in place on a lower band ``(n, kd + 1)``; False if not positive definite.
-
-    Right-looking, column by column; zero entries of a column are skipped. Fixed
-    variables (``free`` False, flattened ``(n,)``) have identity rows and columns, which no
-    elimination step touches (fill-in needs a nonzero in the row), so they are skipped.
-    """
-    n, w = band.shape
-    for j in range(n):
-        if not free[j]:
-            continue
-        p = band[j, 0]
-        if not p > 0.0:
-            return False
-        p = np.sqrt(p)
-        band[j, 0] = p
-        col = band[j]
-        last = min(w, n - j)
-        for o in range(1, last):
-            col[o] /= p
-        for a in range(1, last):
-            la = col[a]
-            if la == 0.0:
-                continue
-            row = band[j + a]
-            for b in range(a, last):  # contiguous: row[b − a] is M[j + b, j + a]
-                row[b - a] -= col[b] * la
-    return True
-
-
-@jit
-def band_solve(band, free, x):
-    """Solve ``L Lᵀ y = x`` in place for ``x (n,)`` with the factor of :func:`band_factor`."""
-    n, w = band.shape
-    for j in range(n):
-        if not free[j]:
-            continue
-        xj = x[j] / band[j, 0]
-        x[j] = xj
-        for o in range(1, min(w, n - j)):
-            x[j + o] -= band[j, o] * xj
-    for j in range(n - 1, -1, -1):
-        if not free[j]:
-            continue
-        s = x[j]
-        for o in range(1, min(w, n - j)):
-            s -= band[j, o] * x[j + o]
-        x[j] = s / band[j, 0]
