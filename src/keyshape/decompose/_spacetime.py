@@ -66,6 +66,7 @@ Prog. Comp.* 12, 637–672 (solution polishing from ADMM's active set).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -163,10 +164,8 @@ def solve_sequence(seq: Sequence, *, rtol: float = 1e-7, max_admm: int = 400, sw
         first = start.copy()
         first[data] = nnls_gram(seq.G, seq.C[data], seq.upper, seq.convex)  # where the frames have data
         best = Best(seq, exact, first)
-        try:
+        with contextlib.suppress(np.linalg.LinAlgError):  # a face singular to rounding: ADMM's way instead
             newton(seq, best, rtol=rtol, max_newton=max_newton)
-        except np.linalg.LinAlgError:  # a face singular to rounding: ADMM's way instead
-            pass
         if best.gap <= rtol:
             return best.Z, best.gap
     rho = admm_rho(seq, lam)
