@@ -121,3 +121,22 @@ def test_a_worker_imports_mediapipe_without_its_plotting():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "MPLBACKEND": "Agg"}).stdout.split()
     assert out == ["_Deferred", "module", "True"]
+
+
+def test_a_worker_leaves_ctrl_c_to_the_parent():
+    """Ctrl-C in a terminal reaches every process of the group: a worker ignores it (the parent
+    ends its workers itself), instead of dying with a KeyboardInterrupt traceback of its own."""
+    import signal
+    import time
+
+    from keyshape.capture import _parallel
+
+    (worker,) = _parallel.start_workers(1)
+    try:
+        time.sleep(1.0)  # in its imports, or waiting for its job
+        worker.send_signal(signal.SIGINT)
+        time.sleep(1.0)
+        assert worker.poll() is None, "the worker died of Ctrl-C"
+    finally:
+        _parallel.stop_workers([worker])
+    assert worker.poll() is not None

@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
+import signal
 import subprocess
 import sys
 import threading
@@ -201,7 +202,12 @@ def _send(process: subprocess.Popen, job: tuple, folder: Path) -> None:
 
 def _worker() -> None:
     """Entry point of a worker process: the tracker's imports, then a job on stdin, its result (or
-    error) pickled to a file."""
+    error) pickled to a file.
+
+    Ctrl-C in a terminal reaches the whole process group; the parent ends its workers itself
+    (:func:`stop_workers`), so a worker ignores SIGINT instead of printing a traceback of its own.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     from .mediapipe import preload
 
     preload()
