@@ -115,16 +115,23 @@ def add_smoothness(Y, X, delta, mu, d0, d1, d2):
     T, K = X.shape
     for t in range(T):
         for k in range(K):
-            s = d0[t] * X[t, k]
-            if t >= 1:
-                s += d1[t - 1] * X[t - 1, k]
-            if t >= 2:
-                s += d2[t - 2] * X[t - 2, k]
-            if t + 1 < T:
-                s += d1[t] * X[t + 1, k]
-            if t + 2 < T:
-                s += d2[t] * X[t + 2, k]
-            Y[t, k] = delta[t] * Y[t, k] + mu * s
+            Y[t, k] = delta[t] * Y[t, k] + mu * with_neighbours(d0[t] * X[t, k], X, d1, d2, t, k)
+
+
+@jit
+def with_neighbours(s, X, d1, d2, t, k):
+    """``s`` plus the off-diagonal terms of ``(LᵀL X)_{t,k}`` (frames ``t ± 1``, ``t ± 2``), added
+    in that order; ``d1, d2 (T,)`` the padded off-diagonals of ``LᵀL``."""
+    T = X.shape[0]
+    if t >= 1:
+        s += d1[t - 1] * X[t - 1, k]
+    if t >= 2:
+        s += d2[t - 2] * X[t - 2, k]
+    if t + 1 < T:
+        s += d1[t] * X[t + 1, k]
+    if t + 2 < T:
+        s += d2[t] * X[t + 2, k]
+    return s
 
 
 # --------------------------------------------------------------------------- projection

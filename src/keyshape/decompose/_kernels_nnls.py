@@ -83,45 +83,56 @@ def block_pivoting(G, C, upper, bounded, state, X):
     rhs, idx = np.empty(K), np.empty(K, np.int64)
     x, bad = np.empty(K), np.zeros(K, np.bool_)
     for r in range(n):
-        c, s = C[r], state[r]
-        c_max = 0.0
-        for i in range(K):
-            c_max = max(c_max, abs(c[i]))
-        best, budget, solved = K + 1, 3, False
-        for _ in range(2 * K + 10):
-            if not _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
-                break
-            scale = 1.0
-            for i in range(K):
-                scale = max(scale, 1.0 + abs(x[i]))
-            tol_x, tol_y = KKT_TOL * scale, KKT_TOL * (c_max + g_max * scale)
-            n_bad = 0
-            for i in range(K):
-                if s[i] == FREE:
-                    b = x[i] < -tol_x or (bounded and x[i] > upper[i] + tol_x)
-                else:
-                    y = -c[i]
-                    for j in range(K):
-                        y += G[i, j] * x[j]
-                    b = y > tol_y if s[i] == UPPER else y < -tol_y
-                bad[i] = b
-                n_bad += b
-            if n_bad < best:
-                best, budget = n_bad, 3
-            else:
-                budget -= 1
-            if n_bad == 0:
-                solved = True
-                break
-            if budget < 0:
-                break
-            for i in range(K):
-                if bad[i]:
-                    if s[i] == FREE:
-                        s[i] = LOWER if x[i] < 0.0 else UPPER
-                    else:
-                        s[i] = FREE
+        solved = pivot_row(G, g_max, C[r], upper, bounded, state[r], x, L, rhs, idx, bad)
         for i in range(K):
             X[r, i] = x[i]
         stalled[r] = not solved
     return stalled
+
+
+@jit
+def pivot_row(G, g_max, c, upper, bounded, s, x, L, rhs, idx, bad):
+    """One row of :func:`block_pivoting`: ``min ½xᵀGx − cᵀx`` on ``0 ≤ x ≤ u`` from the state
+    ``s`` (updated in place), ``g_max = max |G|``; ``x`` receives the last subspace minimiser,
+    ``L, rhs, idx`` are work arrays (as :func:`_subspace_minimiser`'s) and ``bad (K,)`` marks
+    the variables that change side (it may be ``idx`` itself: it is read before the next
+    subspace solve overwrites it). True if the KKT conditions hold, False if it stalled or
+    met a singular free block."""
+    K = c.shape[0]
+    c_max = 0.0
+    for i in range(K):
+        c_max = max(c_max, abs(c[i]))
+    best, budget = K + 1, 3
+    for _ in range(2 * K + 10):
+        if not _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
+            return False
+        scale = 1.0
+        for i in range(K):
+            scale = max(scale, 1.0 + abs(x[i]))
+        tol_x, tol_y = KKT_TOL * scale, KKT_TOL * (c_max + g_max * scale)
+        n_bad = 0
+        for i in range(K):
+            if s[i] == FREE:
+                b = x[i] < -tol_x or (bounded and x[i] > upper[i] + tol_x)
+            else:
+                y = -c[i]
+                for j in range(K):
+                    y += G[i, j] * x[j]
+                b = y > tol_y if s[i] == UPPER else y < -tol_y
+            bad[i] = b
+            n_bad += b
+        if n_bad == 0:
+            return True
+        if n_bad < best:
+            best, budget = n_bad, 3
+        else:
+            budget -= 1
+            if budget < 0:
+                return False
+        for i in range(K):
+            if bad[i]:
+                if s[i] == FREE:
+                    s[i] = LOWER if x[i] < 0.0 else UPPER
+                else:
+                    s[i] = FREE
+    return False

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._kernels import jit
-from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER, _subspace_minimiser
+from ._kernels import jit, with_neighbours
+from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER, _subspace_minimiser, pivot_row
 
 
 @jit
@@ -28,45 +28,11 @@ def _box_qp(G, c, upper, bounded, s, x, L, rhs, idx):
     if it meets the KKT conditions (to ``1e-11`` of the row's scale); a row where the exchanges
     stall keeps where it stopped (a start for the take's QP all the same)."""
     K = c.shape[0]
-    g_max, c_max = 0.0, 0.0
+    g_max = 0.0
     for i in range(K):
-        c_max = max(c_max, abs(c[i]))
         for j in range(K):
             g_max = max(g_max, abs(G[i, j]))
-    best, budget, solved = K + 1, 3, False
-    for _ in range(2 * K + 10):
-        if not _subspace_minimiser(G, c, upper, s, x, L, rhs, idx):
-            break
-        scale = 1.0
-        for i in range(K):
-            scale = max(scale, 1.0 + abs(x[i]))
-        tol_x, tol_y = KKT_TOL * scale, KKT_TOL * (c_max + g_max * scale)
-        n_bad = 0
-        for i in range(K):  # the exchange: rhs[i] marks a variable that changes side
-            if s[i] == FREE:
-                b = x[i] < -tol_x or (bounded and x[i] > upper[i] + tol_x)
-            else:
-                y = -c[i]
-                for j in range(K):
-                    y += G[i, j] * x[j]
-                b = y > tol_y if s[i] == UPPER else y < -tol_y
-            idx[i] = 1 if b else 0
-            n_bad += b
-        if n_bad == 0:
-            solved = True
-            break
-        if n_bad < best:
-            best, budget = n_bad, 3
-        else:
-            budget -= 1
-            if budget < 0:
-                break
-        for i in range(K):
-            if idx[i]:
-                if s[i] == FREE:
-                    s[i] = LOWER if x[i] < 0.0 else UPPER
-                else:
-                    s[i] = FREE
+    solved = pivot_row(G, g_max, c, upper, bounded, s, x, L, rhs, idx, idx)  # idx marks the exchanges
     for i in range(K):
         x[i] = min(max(x[i], 0.0), upper[i])
     return solved
@@ -187,16 +153,7 @@ def start(G, C, mu, d0, d1, d2, upper, bounded, valid, state, X, n_sweeps):
         for i in range(T):
             t = i if sweep % 2 == 0 else T - 1 - i
             for a in range(K):
-                s = 0.0
-                if t >= 1:
-                    s += d1[t - 1] * X[t - 1, a]
-                if t >= 2:
-                    s += d2[t - 2] * X[t - 2, a]
-                if t + 1 < T:
-                    s += d1[t] * X[t + 1, a]
-                if t + 2 < T:
-                    s += d2[t] * X[t + 2, a]
-                r[a] = C[t, a] - mu * s
+                r[a] = C[t, a] - mu * with_neighbours(0.0, X, d1, d2, t, a)
                 for b in range(K):
                     H[a, b] = G[t, a, b]
                 H[a, a] += mu * d0[t]
@@ -209,20 +166,11 @@ def start(G, C, mu, d0, d1, d2, upper, bounded, valid, state, X, n_sweeps):
 @jit
 def _product(G, mu, d0, d1, d2, X, t, k):
     """``(P X)_{t,k} = (G_t x_t)_k + μ (LᵀL X)_{t,k}``."""
-    T, K = X.shape
+    K = X.shape[1]
     s = 0.0
     for m in range(K):
         s += G[t, k, m] * X[t, m]
-    r = d0[t] * X[t, k]
-    if t >= 1:
-        r += d1[t - 1] * X[t - 1, k]
-    if t >= 2:
-        r += d2[t - 2] * X[t - 2, k]
-    if t + 1 < T:
-        r += d1[t] * X[t + 1, k]
-    if t + 2 < T:
-        r += d2[t] * X[t + 2, k]
-    return s + mu * r
+    return s + mu * with_neighbours(d0[t] * X[t, k], X, d1, d2, t, k)
 
 
 @jit
