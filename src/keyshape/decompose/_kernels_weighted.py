@@ -7,9 +7,11 @@ unweighted one: these kernels build and apply it directly, frame-major (``x[t·K
 
 Every kernel works on a sorted list of frames ``rows`` of the take (all of them, or windows
 around the changes of an active-set step) and costs only those: a step on a few windows of a
-long take costs the windows. A face's system is built on its free variables only, numbered in
-order (:func:`compact_index`, :func:`compact_band`), as a band that LAPACK's banded Cholesky
-(``dpbtrf``) factors: 2–3 times the speed of a compiled loop on a band ``2K`` wide.
+long take costs the windows. A face's system is built on its free variables only, numbered
+frame-major (:func:`number_face`), packed as its lower envelope (:func:`fill_face`) and factored
+by the envelope Cholesky factorisation of :mod:`keyshape.decompose._kernels_face`, the one the
+unweighted solve uses (:func:`solve_face`): each column costs its own reach, so a frame with
+few free variables costs little, where a band costs its widest frame everywhere.
 """
 
 from __future__ import annotations
@@ -183,70 +185,168 @@ def hessian_at(G, mu, d0, d1, d2, X, rows, out):
 
 
 @jit
-def face_system(G, C, mu, d0, d1, d2, top, state, X, rows, pos, buffer, rhs):
-    """The face of the frames ``rows`` (sorted; the other frames held at ``X``) as a banded
-    system on its free variables only: returns ``(n_free, kd)``.
+def number_face(state, rows, pos, reach, offset):
+    """Number the free variables of the frames ``rows`` (sorted) frame-major and lay out the
+    envelope of their face system: returns ``(n_free, size)``.
 
-    Sets the bound variables of ``rows`` in ``X`` to their bounds (``top``: the upper bounds, 0
-    where there are none) and the free ones to 0; numbers the free variables in order into
-    ``pos (len(rows), K)`` (−1 where fixed); fills ``buffer[: n_free·(kd + 1)]``, seen as
-    ``(n_free, kd + 1)``, with ``band[p, o] = M[p + o, p]`` (its transpose is LAPACK's lower band
-    storage, for ``dpbtrf``), and ``rhs[: n_free]`` with ``c − P X`` there. A free variable is
-    coupled to the free ones of its frame and to its key in the next two frames (when those are
-    among ``rows``), so ``kd`` is at most ``2K``.
+    ``state (T, K)`` int8; ``pos (len(rows), K)`` int64 receives each free variable's number
+    (−1 where fixed); for the first ``n_free`` entries ``reach`` and ``offset`` (int64, at least
+    ``len(rows)·K`` long) receive how far below the diagonal column ``j`` of the Cholesky factor
+    reaches and where it starts in the packed storage, ``size`` numbers in all, as
+    :func:`keyshape.decompose._kernels_face.number_free` lays them out. A free variable couples
+    to the free ones of its frame and to its key in the next two frames, when those are among
+    ``rows`` (the others are held), so the envelope is that of :mod:`._kernels_face` on runs of
+    consecutive frames.
     """
     n = rows.shape[0]
-    K = X.shape[1]
+    K = state.shape[1]
     p = 0
     for i in range(n):
         t = rows[i]
         for a in range(K):
-            s = state[t, a]
-            X[t, a] = top[a] if s == UPPER else 0.0
-            if s == FREE:
+            if state[t, a] == FREE:
                 pos[i, a] = p
                 p += 1
             else:
                 pos[i, a] = -1
-    kd = 0
+    low = 0  # max over the columns so far of their last nonzero row
+    size = 0
     for i in range(n):
-        last = -1
+        last_here = -1
         for a in range(K):
-            last = max(last, pos[i, a])
+            last_here = max(last_here, pos[i, a])
         near = i + 1 < n and rows[i + 1] == rows[i] + 1
         far = i + 2 < n and rows[i + 2] == rows[i] + 2
         for a in range(K):
-            q = pos[i, a]
-            if q < 0:
+            j = pos[i, a]
+            if j < 0:
                 continue
-            reach = last
+            deepest = last_here
             if near:
-                reach = max(reach, pos[i + 1, a])
+                deepest = max(deepest, pos[i + 1, a])
             if far:
-                reach = max(reach, pos[i + 2, a])
-            kd = max(kd, reach - q)
-    W = kd + 1
-    band = buffer[: p * W].reshape((p, W))
+                deepest = max(deepest, pos[i + 2, a])
+            low = max(low, deepest)
+            reach[j] = low - j
+            offset[j] = size
+            size += low - j + 1
+    return p, size
+
+
+@jit
+def _hold(top, state, X, rows):
+    """The bound variables of the frames ``rows`` of ``X`` at their bounds (``top``: the upper
+    bounds, 0 where there are none), the free ones at 0."""
+    K = X.shape[1]
+    for i in range(rows.shape[0]):
+        t = rows[i]
+        for a in range(K):
+            X[t, a] = top[a] if state[t, a] == UPPER else 0.0
+
+
+@jit
+def _fill_frame(G, C, mu, d0, d1, d2, X, rows, pos, reach, offset, packed, rhs, i):
+    """The packed columns and right-hand side of the free variables of frame ``rows[i]`` (see
+    :func:`fill_face`)."""
+    n = rows.shape[0]
+    K = X.shape[1]
+    t = rows[i]
+    near = i + 1 < n and rows[i + 1] == t + 1
+    far = i + 2 < n and rows[i + 2] == t + 2
+    for a in range(K):
+        j = pos[i, a]
+        if j < 0:
+            continue
+        col = offset[j]
+        for o in range(reach[j] + 1):
+            packed[col + o] = 0.0
+        packed[col] = G[t, a, a] + mu * d0[t]
+        for b in range(a + 1, K):
+            j2 = pos[i, b]
+            if j2 >= 0:
+                packed[col + j2 - j] = G[t, b, a]
+        if near and pos[i + 1, a] >= 0:
+            packed[col + pos[i + 1, a] - j] = mu * d1[t]
+        if far and pos[i + 2, a] >= 0:
+            packed[col + pos[i + 2, a] - j] = mu * d2[t]
+        rhs[j] = C[t, a] - _product(G, mu, d0, d1, d2, X, t, a)
+
+
+@jit
+def fill_face(G, C, mu, d0, d1, d2, top, state, X, rows, pos, reach, offset, packed, rhs):
+    """The face of the frames ``rows`` (the other frames held at ``X``) on its free variables,
+    numbered by :func:`number_face`: ``P_FF`` packed as the lower envelope
+    (``packed[offset[j] + o] = P_FF[j + o, j]`` for ``o ≤ reach[j]``, any values on entry, as
+    :func:`keyshape.decompose._kernels_face.factor_face` reads it) and ``rhs[: n_free]`` with
+    ``c_F − P_{F,·} X`` for ``X`` with the bound variables of ``rows`` at their bounds (``top``:
+    the upper bounds, 0 where there are none) and the free ones at 0 (``X`` set so, in place).
+    ``G (T, K, K)`` per frame, so unlike the unweighted face every frame has its own block.
+    """
+    _hold(top, state, X, rows)
+    for i in range(rows.shape[0]):
+        _fill_frame(G, C, mu, d0, d1, d2, X, rows, pos, reach, offset, packed, rhs, i)
+
+
+@jit
+def solve_face(G, C, mu, d0, d1, d2, top, state, X, rows, pos, reach, offset, packed, rhs):
+    """Frames ``rows`` (sorted) of ``X`` (in place) on the exact minimiser of their face, the
+    other frames held, in one pass over the envelope: returns False (the free variables of
+    ``rows`` left at 0) if the face is not positive definite.
+
+    The free variables are numbered by :func:`number_face`; the Cholesky factorisation
+    ``P_FF = L Lᵀ`` is that of :func:`keyshape.decompose._kernels_face.factor_face`
+    (right-looking, column after column, the same operations in the same order), with each
+    frame's columns filled (:func:`fill_face`) only just before the first column whose reach
+    gets to them, and the forward substitution ``L y = r`` done on each column as soon as it is
+    final: the envelope is written, factored and read while it is in the cache, instead of
+    three passes over memory. Then ``Lᵀ x = y`` backwards and the free values put back.
+    ``packed`` must hold the envelope (at most ``len(rows)·K·(2K + 1)`` numbers: a column
+    reaches at most ``2K`` below the diagonal), ``rhs`` ``len(rows)·K``.
+    """
+    n_free = number_face(state, rows, pos, reach, offset)[0]
+    _hold(top, state, X, rows)
+    n = rows.shape[0]
+    K = X.shape[1]
+    filled, frame = 0, 0  # columns filled so far, the next frame to fill
+    for j in range(n_free):
+        last = reach[j] + 1
+        while filled < j + last:  # every column this one updates is filled first
+            _fill_frame(G, C, mu, d0, d1, d2, X, rows, pos, reach, offset, packed, rhs, frame)
+            for a in range(K):
+                filled += pos[frame, a] >= 0
+            frame += 1
+        col = packed[offset[j] : offset[j] + last]
+        p = col[0]
+        if not p > 0.0:
+            return False
+        p = np.sqrt(p)
+        col[0] = p
+        for o in range(1, last):
+            col[o] /= p
+        for a in range(1, last):
+            la = col[a]
+            if la == 0.0:
+                continue
+            row = packed[offset[j + a] : offset[j + a] + last - a]  # row[b − a] is M[j + b, j + a]
+            for b in range(a, last):
+                row[b - a] -= col[b] * la
+        yj = rhs[j] / p  # L y = r, column j final
+        rhs[j] = yj
+        for o in range(1, last):
+            rhs[j + o] -= col[o] * yj
+    for j in range(n_free - 1, -1, -1):  # Lᵀ x = y
+        c0 = offset[j]
+        s = rhs[j]
+        for o in range(1, reach[j] + 1):
+            s -= packed[c0 + o] * rhs[j + o]
+        rhs[j] = s / packed[c0]
     for i in range(n):
         t = rows[i]
-        near = i + 1 < n and rows[i + 1] == t + 1
-        far = i + 2 < n and rows[i + 2] == t + 2
         for a in range(K):
-            q = pos[i, a]
-            if q < 0:
-                continue
-            for o in range(W):
-                band[q, o] = 0.0
-            band[q, 0] = G[t, a, a] + mu * d0[t]
-            for b in range(a + 1, K):
-                if pos[i, b] >= 0:
-                    band[q, pos[i, b] - q] = G[t, b, a]
-            if near and pos[i + 1, a] >= 0:
-                band[q, pos[i + 1, a] - q] = mu * d1[t]
-            if far and pos[i + 2, a] >= 0:
-                band[q, pos[i + 2, a] - q] = mu * d2[t]
-            rhs[q] = C[t, a] - _product(G, mu, d0, d1, d2, X, t, a)
-    return p, kd
+            j = pos[i, a]
+            if j >= 0:
+                X[t, a] = rhs[j]
+    return True
 
 
 @jit

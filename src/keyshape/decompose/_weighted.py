@@ -21,9 +21,10 @@ region is carried by the smoothness term from the frames around it, as a gap is.
   (:class:`keyshape.decompose.GramTake`). :func:`solve_weighted_gram` runs primal–dual
   active-set steps (Hintermüller, Ito & Kunisch 2003) on the banded Hessian
   ``P = blockdiag(G_t) + μ LᵀL ⊗ I`` (bandwidth ``2K``, frames in order): each step fixes the
-  variables at their bounds and solves the free ones exactly, one banded Cholesky factorisation
-  of the free variables only (LAPACK's ``dpbtrf``), then moves every variable that breaks a KKT
-  condition to the other side.
+  variables at their bounds and solves the free ones exactly, one Cholesky factorisation of the
+  free variables only (numbered frame-major, on their envelope, :mod:`._kernels_face`, as the
+  unweighted solve factors its faces), then moves every variable that breaks a KKT condition
+  to the other side.
 
   - The first active set is every frame's own (its box QP without the smoothness, block
     principal pivoting), then two symmetric block Gauss–Seidel sweeps over the frames (each
@@ -284,8 +285,10 @@ class _Problem:
         self.every = np.arange(n)
         # the band of the face being solved: room for every variable free, but only the pages a face
         # uses are ever touched (first touch costs a page fault; a buffer allocated anew would pay again)
-        self.buffer = np.empty(n * K * (2 * K + 1))
+        self.packed = np.empty(n * K * (2 * K + 1))  # a column of the envelope is at most 2K + 1 long
         self.rhs = np.empty(n * K)
+        self.pos, self.reach, self.offset = np.empty((n, K), np.int64), np.empty(n * K, np.int64), np.empty(n * K,
+                                                                                                          np.int64)
         diagonal = np.einsum("tkk->tk", self.G)  # |G_ij| <= max(G_ii, G_jj): G_t is positive semi-definite
         self.g_scale = float(np.abs(self.C).max(initial=0.0) + diagonal.max(initial=0.0) + mu)
 
@@ -297,25 +300,12 @@ class _Problem:
 
     def solve(self, X, state, rows):
         """Frames ``rows`` (sorted) of ``X`` (in place) on the exact minimiser of their face, the
-        other frames held: the free variables numbered in order, their band
-        (:func:`keyshape.decompose._kernels_weighted.face_system`) factored by LAPACK's banded
-        Cholesky (``dpbtrf``)."""
-        from scipy.linalg import lapack
-
-        pos = np.empty((len(rows), X.shape[1]), np.int64)
-        n_free, kd = self.kw.face_system(self.G, self.C, self.mu, *self.d, self.top, state, X, rows, pos,
-                                         self.buffer, self.rhs)
-        if not n_free:
-            return
-        band = self.buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
-        factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)  # band.T: LAPACK's lower storage
-        if info != 0:
-            raise np.linalg.LinAlgError("banded Cholesky failed on a face: not positive definite")
-        x, info = lapack.dpbtrs(factor, self.rhs[:n_free], lower=1)
-        free = pos >= 0
-        sub = X[rows]
-        sub[free] = x
-        X[rows] = sub
+        other frames held: the free variables numbered frame-major, their system factored by
+        the envelope Cholesky factorisation of :mod:`keyshape.decompose._kernels_face`
+        (:func:`keyshape.decompose._kernels_weighted.solve_face`), in the problem's buffers."""
+        if not self.kw.solve_face(self.G, self.C, self.mu, *self.d, self.top, state, X, rows, self.pos[: len(rows)],
+                                  self.reach, self.offset, self.packed, self.rhs):
+            raise np.linalg.LinAlgError("Cholesky factorisation failed on a face: not positive definite")
 
     def violations(self, X, state, rows):
         """Dimensionless KKT violations ``(len(rows), K)`` on the current face (> 0: changes side)."""
@@ -337,22 +327,25 @@ class _Certificate:
     feasible point (as :func:`keyshape.decompose._sequence.lower_bound`, with this ``P``)."""
 
     def __init__(self, problem: _Problem, const: float):
-        from scipy.linalg import lapack
+        from . import _kernels_face
 
-        self.problem, self.const, self.lapack = problem, float(const), lapack
+        self.problem, self.const, self.kf = problem, float(const), _kernels_face
         n, K = problem.C.shape
-        buffer, pos = np.empty(n * K * (2 * K + 1)), np.empty((n, K), np.int64)
-        n_free, kd = problem.kw.face_system(problem.G, problem.C, problem.mu, *problem.d, problem.top,
-                                            np.full((n, K), FREE, np.int8), np.zeros((n, K)), problem.every, pos,
-                                            buffer, np.empty(n * K))
-        band = buffer[: n_free * (kd + 1)].reshape(n_free, kd + 1)
-        self.factor, info = lapack.dpbtrf(band.T, lower=1, overwrite_ab=1)
-        self.ok = info == 0
+        kw = problem.kw
+        state = np.full((n, K), FREE, np.int8)
+        self.reach, self.offset = np.empty(n * K, np.int64), np.empty(n * K, np.int64)
+        pos = np.empty((n, K), np.int64)
+        self.n_free, size = kw.number_face(state, problem.every, pos, self.reach, self.offset)
+        self.packed = np.empty(size)
+        kw.fill_face(problem.G, problem.C, problem.mu, *problem.d, problem.top, state, np.zeros((n, K)), problem.every,
+                     pos, self.reach, self.offset, self.packed, np.empty(n * K))
+        self.ok = bool(_kernels_face.factor_face(self.n_free, self.reach, self.offset, self.packed))
         self.F, self.q, self.Z = np.inf, -np.inf, None
 
     def inverse(self, R):
         """``P⁻¹ R`` for ``R (T, K)``."""
-        x, _ = self.lapack.dpbtrs(self.factor, np.ravel(R), lower=1)
+        x = np.array(R, dtype=float).ravel()
+        self.kf.solve_face(self.n_free, self.reach, self.offset, self.packed, x)
         return x.reshape(R.shape)
 
     def offer(self, Z):
