@@ -148,6 +148,9 @@ def start(G, C, mu, d0, d1, d2, upper, bounded, valid, state, X, n_sweeps):
                 state[t, k] = state[t - 1, k] if t > 0 else FREE
                 X[t, k] = X[t - 1, k] if t > 0 else 0.0
             continue
+        if t > 0:  # from the frame before's active set: neighbouring frames share most of it
+            for k in range(K):
+                state[t, k] = state[t - 1, k]
         _box_qp(G[t], C[t], upper, bounded, state[t], X[t], L, rhs, idx)
     H = np.empty((K, K))
     r = np.empty(K)
