@@ -282,3 +282,118 @@ def test_frames_on_their_own_gram_matrices_are_the_exact_nnls(bound):
             continue
         Av = A * weight[t][:, None]
         np.testing.assert_allclose(X[t], nnls_gram(Av.T @ A, (B[t] @ Av)[None], upper, False)[0], atol=1e-8)
+
+
+def _random_face(seed, n=12, K=4):
+    """A small weighted QP in Gram form (per-frame G_t, some nearly singular) and a face of it:
+    random states, the frames ``rows`` (two runs, a gap between) re-solved, the rest held."""
+    from keyshape.decompose._weighted import _Problem
+
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, K + 1, K))
+    G = np.einsum("tmk,tml->tkl", M, M) * rng.uniform(0.0, 1.0, n)[:, None, None]
+    G[3] = 0.0  # a frame without data: the smoothness alone
+    C = rng.normal(size=(n, K))
+    problem = _Problem(G, C, 0.7, np.ones(K))
+    state = rng.integers(0, 3, size=(n, K)).astype(np.int8)
+    X = rng.uniform(0.0, 1.0, size=(n, K))
+    rows = np.array([0, 1, 2, 3, 4, 5, 8, 9, 10])
+    return problem, G, C, state, X, rows
+
+
+def _dense_hessian(G, mu):
+    from keyshape.decompose._sequence import second_difference_gram
+
+    n, K = G.shape[:2]
+    Lap = np.diff(np.eye(n), 2, axis=0)
+    P = np.zeros((n * K, n * K))
+    for t in range(n):
+        P[t * K:(t + 1) * K, t * K:(t + 1) * K] = G[t]
+    P += mu * np.kron(Lap.T @ Lap, np.eye(K))
+    d0, d1, d2 = second_difference_gram(n)  # the same LᵀL as the kernels'
+    for offset, d in enumerate((d0, d1, d2)):
+        np.testing.assert_allclose(np.diag(Lap.T @ Lap, offset), d)
+    return P
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_weighted_face_is_the_dense_solve(seed):
+    """A face solved on its envelope (per-frame G_t, the free variables of some frames only,
+    the rest held) is the dense solve of the same face."""
+    problem, G, C, state, X, rows = _random_face(seed)
+    n, K = C.shape
+    P = _dense_hessian(G, problem.mu)
+    fixed = X.copy()  # held frames keep X, bound variables of rows sit at their bounds
+    fixed[rows] = np.where(state[rows] == 2, 1.0, 0.0)
+    free = np.zeros((n, K), bool)
+    free[rows] = state[rows] == 1
+    f = free.ravel()
+    expected = fixed.ravel().copy()
+    expected[f] = np.linalg.solve(P[np.ix_(f, f)], (C.ravel() - P @ fixed.ravel())[f])
+    ours = X.copy()
+    problem.solve(ours, state, rows)
+    np.testing.assert_allclose(ours.ravel(), expected, rtol=1e-10, atol=1e-10)
+    assert not np.allclose(ours, X)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_weighted_envelope_factor_is_numpys_cholesky(seed):
+    """The packed envelope factor (every variable free, as the certificate factors ``P``) holds
+    numpy's Cholesky factor of the dense ``P``, and inverts ``P``."""
+    from keyshape.decompose._weighted import _Certificate
+
+    problem, G, C = _random_face(seed)[:3]
+    n, K = C.shape
+    cert = _Certificate(problem, 1.0)
+    assert cert.ok and cert.n_free == n * K
+    P = _dense_hessian(G, problem.mu)
+    L = np.linalg.cholesky(P)
+    ours = np.zeros_like(L)
+    for j in range(n * K):
+        column = cert.packed[cert.offset[j]: cert.offset[j] + cert.reach[j] + 1]
+        ours[j: j + len(column), j] = column
+    np.testing.assert_allclose(ours, L, atol=1e-12 * np.abs(L).max())
+    assert np.all(L[np.tril_indices(n * K)][np.abs(ours[np.tril_indices(n * K)]) == 0.0] == 0.0)  # nothing lost
+    R = np.random.default_rng(seed).normal(size=(n, K))
+    np.testing.assert_allclose(cert.inverse(R).ravel(), np.linalg.solve(P, R.ravel()), rtol=1e-9, atol=1e-12)
+
+
+def test_a_face_that_is_not_positive_definite_raises():
+    """A face whose free block is singular (no data, no smoothness) is refused, not solved."""
+    problem, _, _, state, X, rows = _random_face(0)
+    problem.G[:] = 0.0
+    problem.mu = 0.0
+    with pytest.raises(np.linalg.LinAlgError):
+        problem.solve(X, np.ones_like(state), rows)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_weighted_solve_in_pieces_is_the_whole_take_solve(seed, monkeypatch):
+    """A take cut into overlapping pieces (solved on threads, joined, finished on the whole take)
+    has the whole-take solve's optimum, to the same exact KKT certificate (gap 0)."""
+    import keyshape.decompose._weighted as weighted
+    from keyshape.decompose._solve import _mu
+
+    A, B, weight, upper = _hand_problem(seed, n=2100)
+    mu = _mu(A.T @ A, 0.1)
+    seen = np.isfinite(B).all(axis=1) & (weight.mean(axis=1) >= weighted.HIDDEN)
+    v = np.where(seen[:, None], weight, 0.0)
+    B0 = np.where(seen[:, None], B, 0.0)
+    G, C, sq = weighted.weighted_gram(A, v), (v * B0) @ A, np.einsum("fm,fm->f", v * B0, B0)
+    whole, gap = weighted._exact(G, C, float(sq.sum()), mu, upper, valid=seen)
+    assert gap == 0.0
+    calls = []
+    exact = weighted._exact
+
+    def spy(*args, **kwargs):
+        found = exact(*args, **kwargs)
+        calls.append((len(args[1]), "start" in kwargs, found[1]))
+        return found
+
+    monkeypatch.setattr(weighted, "_exact", spy)
+    monkeypatch.setattr(weighted, "PIECE_FRAMES", 500)
+    monkeypatch.setattr(weighted.os, "cpu_count", lambda: 3)
+    pieces = weighted.solve_weighted_gram(G, C, sq, seen, mu, upper)
+    assert [c[:2] for c in calls[-1:]] == [(2100, True)] and len(calls) == 4  # three pieces, then the whole
+    assert all(c[0] < 2100 for c in calls[:3]) and calls[-1][2] == 0.0  # the whole take certified exactly
+    np.testing.assert_allclose(pieces, whole, atol=1e-9)

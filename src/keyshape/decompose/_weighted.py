@@ -45,6 +45,12 @@ region is carried by the smoothness term from the frames around it, as a gap is.
     ``q(y) = const − (c − y)ᵀP⁻¹(c − y) − 2σ_C(y) ≤ F*``, and a relative gap of ``tol``
     (1e-7 by default) ends them as it ends the unweighted solve; above ``max(1e-4, 100 tol)``
     a ConvergenceWarning says so.
+  - A take of at least twice :data:`PIECE_FRAMES` frames is cut into overlapping pieces, one
+    per core, solved at once on threads (the compiled kernels release the GIL), joined, and
+    the steps above go on on the whole take from the joined point's active set
+    (:func:`_exact_pieces`): the whole take's face and its KKT conditions decide, so the
+    answer is the same optimum to the same certificate (on the takes measured, the joined point
+    already was it: one face of the whole take certified it).
 * Otherwise (``Σw ≤ 1``, or a ``P`` that is not positive definite), majorise-minimise
   (Kiers 1997; Srebro & Jaakkola 2003): as ``V_t ⪯ I``,
   ``‖V_t^{1/2}(A w − b_t)‖² ≤ ‖A w − \\tilde b_t‖² + const`` with the hidden part filled in from
@@ -67,8 +73,10 @@ O'Donoghue, B. & Candès, E. (2015). Adaptive restart for accelerated gradient s
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -93,6 +101,8 @@ MAX_STEPS = 30  # active-set steps on the whole take
 MAX_LOCAL = 300  # steps of one local phase
 CYCLING = 4  # changes of side after which a variable counts as cycling
 SWEEPS = 2  # symmetric block Gauss-Seidel sweeps over the frames before the first step
+PIECE_FRAMES = 20_000  # a take of at least twice this many frames is solved in pieces, one per core
+REACH = 1e-6  # ... overlapping by twice the frames over which a change decays by this
 
 
 def coordinate_weights(seen: np.ndarray, n_dims: int) -> np.ndarray:
@@ -210,7 +220,12 @@ def solve_weighted_gram(G: np.ndarray, C: np.ndarray, sq: np.ndarray, valid: np.
         if ridge:
             Gs = Gs + ridge * float(np.abs(Gs).max()) * np.eye(K)
         try:
-            found = _exact(Gs, Cs, const, mu, upper, tol=tol, valid=seen)
+            n_pieces = _pieces(len(seen))
+            if n_pieces > 1:
+                found = _exact_pieces(Gs, Cs, np.where(seen, sq[span], 0.0), mu, upper, tol=tol, valid=seen,
+                                      n_pieces=n_pieces)
+            else:
+                found = _exact(Gs, Cs, const, mu, upper, tol=tol, valid=seen)
         except np.linalg.LinAlgError:
             found = None
         if found is not None:
@@ -422,19 +437,76 @@ def _around(frames, reach, n):
     return np.unique(near[(near >= 0) & (near < n)])
 
 
-def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None):
+def _pieces(n_frames: int) -> int:
+    """How many pieces :func:`solve_weighted_gram` cuts a take of ``n_frames`` into: one per
+    core, each at least :data:`PIECE_FRAMES` long."""
+    return max(1, min(os.cpu_count() or 1, n_frames // PIECE_FRAMES))
+
+
+def _margin(G, valid, mu, n):
+    """Frames over which a change of the optimum decays by :data:`REACH`, for a typical frame:
+    the Green's function of ``λ I + μ LᵀL`` falls by ``|z|`` per frame, ``z`` the root inside the
+    unit circle of ``(z − 2 + 1/z)² = −λ/μ``, with ``λ`` the smallest eigenvalue of the mean
+    ``G_t`` of the frames with data (``G (T, K, K)``). At least :data:`WINDOW`, at most ``n``."""
+    count = int(np.count_nonzero(valid))
+    mean = np.einsum("t,tij->ij", valid.astype(float), G) / max(count, 1)  # no copy of the frames with data
+    lam = float(np.linalg.eigvalsh(mean)[0]) if count else 0.0
+    w = 2.0 + 1j * np.sqrt(max(lam, 0.0) / mu)
+    z = abs((w - np.sqrt(w * w - 4.0)) / 2.0)
+    z = min(z, 1.0 / z) if z > 0.0 else 0.0
+    if not 0.0 < z < 1.0:
+        return n
+    return int(min(max(np.ceil(np.log(REACH) / np.log(z)), WINDOW), n))
+
+
+def _exact_pieces(G, C, sq, mu, upper, *, tol, valid, n_pieces):
+    """:func:`_exact`'s result from ``n_pieces`` overlapping pieces of the take solved at once,
+    one thread each (the compiled kernels release the GIL), then joined and finished on the
+    whole take.
+
+    The smoothness couples a frame to two on either side, and the optimum's response to a
+    change falls off geometrically with distance (:func:`_margin`), so each piece is solved with
+    twice that margin of its neighbours on either side, of which only its own frames are kept.
+    The joined point is then only a start: :func:`_exact` goes on from its active set on the
+    whole take (a face of the whole take, its KKT conditions, local steps around what the join
+    got wrong), so the answer carries the same certificate as the whole-take solve.
+    ``G (T, K, K)``, ``C (T, K)``, ``sq (T,)`` (0 where not ``valid``), ``valid (T,)`` bool.
+    """
+    n = len(C)
+    reach = 2 * _margin(G, valid, mu, n)
+    edges = np.linspace(0, n, n_pieces + 1).astype(int)
+
+    def piece(i):
+        lo, hi = max(edges[i] - reach, 0), min(edges[i + 1] + reach, n)
+        part = slice(lo, hi)
+        X, _ = _exact(G[part], C[part], float(sq[part].sum()), mu, upper, tol=tol, valid=valid[part])
+        return X[edges[i] - lo : edges[i + 1] - lo]
+
+    with ThreadPoolExecutor(max_workers=n_pieces) as pool:
+        Z = np.concatenate(list(pool.map(piece, range(n_pieces))))
+    return _exact(G, C, float(sq.sum()), mu, upper, tol=tol, valid=valid, start=Z)
+
+
+def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None, start=None):
     """Minimiser ``(T, K)`` of the weighted smoothed QP in Gram form and its certified relative
     gap: 0 when a face of the whole take meets the KKT conditions (the exact optimum), else the
     duality gap (see the module notes); LinAlgError when ``P`` is not positive definite.
     ``valid``: the frames with data (default: those with a nonzero ``G_t``). ``trace``: a list
-    that gets one entry per step on the whole take and per local step (for the benchmarks)."""
+    that gets one entry per step on the whole take and per local step (for the benchmarks).
+    ``start (T, K)``: a first point within the bounds, whose active set the steps start from
+    (instead of the frames' own and the Gauss–Seidel sweeps)."""
     problem = _Problem(G, C, mu, upper)
     n, K = problem.C.shape
     valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
-    state = np.full((n, K), FREE, np.int8)  # each frame's own active set, then Gauss-Seidel sweeps
-    X = np.empty((n, K))
-    bounded = bool(np.isfinite(problem.upper).any())
-    problem.kw.start(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, valid, state, X, SWEEPS)
+    if start is None:
+        state = np.full((n, K), FREE, np.int8)  # each frame's own active set, then Gauss-Seidel sweeps
+        X = np.empty((n, K))
+        bounded = bool(np.isfinite(problem.upper).any())
+        problem.kw.start(problem.G, problem.C, problem.mu, *problem.d, problem.upper, bounded, valid, state, X,
+                         SWEEPS)
+    else:
+        X = np.array(start, dtype=float)
+        state = np.where(X <= 0.0, LOWER, np.where(X >= problem.upper, UPPER, FREE)).astype(np.int8)
     damping, cert = _Damping(), None
     for step in range(MAX_STEPS):
         problem.solve(X, state, problem.every)  # a face of the whole take: exact everywhere
