@@ -131,19 +131,23 @@ def solve_weighted(A: np.ndarray, B: np.ndarray, weight: np.ndarray, solve: Call
     tol : float
         The relative duality gap that the exact smoothed solve certifies.
     """
-    B = np.array(B, dtype=float)
-    gone = weight.mean(axis=1) < HIDDEN
-    B[gone] = np.nan
-    partial = np.flatnonzero(np.isfinite(B).all(axis=1) & (weight < 1.0).any(axis=1))
+    B = np.asarray(B, dtype=float)
+    seen = np.isfinite(B).all(axis=1) & ~(weight.mean(axis=1) < HIDDEN)  # frames with a data term
+    partial = np.flatnonzero(seen & (weight < 1.0).any(axis=1))
     if partial.size and smoothness > 0.0 and mu is not None and mu > 0.0 and not convex:
-        seen = np.isfinite(B).all(axis=1)
-        v = np.where(seen[:, None], weight, 0.0)
-        B0 = np.where(seen[:, None], B, 0.0)
-        Bv = v * B0
-        found = solve_weighted_gram(weighted_gram(A, v), Bv @ A, np.einsum("fm,fm->f", Bv, B0), seen, mu,
-                                    np.asarray(upper, dtype=float), tol=tol)
+        # G_t, c_t = Aᵀ V_t b_t and b_tᵀ V_t b_t, zero where no data (few whole-take temporaries: their
+        # first touch costs as much as the products)
+        Bv = weight * B
+        Bv[~seen] = 0.0
+        sq = np.einsum("fm,fm->f", Bv, B)
+        sq[~seen] = 0.0
+        G = weighted_gram(A, weight)
+        G[~seen] = 0.0
+        found = solve_weighted_gram(G, Bv @ A, sq, seen, mu, np.asarray(upper, dtype=float), tol=tol)
         if found is not None:
             return found
+    B = np.array(B)
+    B[~seen] = np.nan  # frames without a face, or whose region is (nearly) all hidden: gaps
     W = solve(B)
     if not partial.size:
         return W
@@ -277,7 +281,7 @@ def weighted_gram(A: np.ndarray, weight: np.ndarray) -> np.ndarray:
     n = weight.shape[0]
     H = (A[:, :, None] * A[:, None, :]).reshape(m, K * K)
     for d in (3, 2):
-        if m % d == 0 and m > d and np.array_equal(weight[:, ::d].repeat(d, axis=1), weight):
+        if m % d == 0 and m > d and (weight.reshape(n, m // d, d) == weight[:, ::d, None]).all():
             H, weight = H.reshape(m // d, d, K * K).sum(axis=1), weight[:, ::d]
             break
     return np.ascontiguousarray(weight @ H).reshape(n, K, K)
@@ -479,7 +483,7 @@ def _exact_pieces(G, C, sq, mu, upper, *, tol, valid, n_pieces):
     def piece(i):
         lo, hi = max(edges[i] - reach, 0), min(edges[i + 1] + reach, n)
         part = slice(lo, hi)
-        X, _ = _exact(G[part], C[part], float(sq[part].sum()), mu, upper, tol=tol, valid=valid[part])
+        X, _ = _exact(G[part], C[part], float(sq[part].sum()), mu, upper, tol=tol, valid=valid[part], certify=False)
         return X[edges[i] - lo : edges[i + 1] - lo]
 
     with ThreadPoolExecutor(max_workers=n_pieces) as pool:
@@ -487,14 +491,16 @@ def _exact_pieces(G, C, sq, mu, upper, *, tol, valid, n_pieces):
     return _exact(G, C, float(sq.sum()), mu, upper, tol=tol, valid=valid, start=Z)
 
 
-def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None, start=None):
+def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None, start=None, certify=True):
     """Minimiser ``(T, K)`` of the weighted smoothed QP in Gram form and its certified relative
     gap: 0 when a face of the whole take meets the KKT conditions (the exact optimum), else the
     duality gap (see the module notes); LinAlgError when ``P`` is not positive definite.
     ``valid``: the frames with data (default: those with a nonzero ``G_t``). ``trace``: a list
     that gets one entry per step on the whole take and per local step (for the benchmarks).
     ``start (T, K)``: a first point within the bounds, whose active set the steps start from
-    (instead of the frames' own and the Gauss–Seidel sweeps)."""
+    (instead of the frames' own and the Gauss–Seidel sweeps). ``certify=False``: return (with
+    a gap of ``inf``) once the first local phase has settled, without the face of the whole take
+    that would check it (for a piece of :func:`_exact_pieces`, which the joined take's checks)."""
     problem = _Problem(G, C, mu, upper)
     n, K = problem.C.shape
     valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
@@ -526,6 +532,8 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None, start=No
         damping(count)
         if count <= max(8, n * K // FEW):  # few changes: local steps around them
             _local(problem, X, state, np.flatnonzero(wrong), trace)
+            if not certify:  # a piece: the whole take's face checks it
+                return np.clip(X, 0.0, problem.upper), np.inf
     if cert is None:
         cert = _Certificate(problem, const)
         if not cert.ok:
