@@ -397,3 +397,29 @@ def test_weighted_solve_in_pieces_is_the_whole_take_solve(seed, monkeypatch):
     assert [c[:2] for c in calls[-1:]] == [(2100, True)] and len(calls) == 4  # three pieces, then the whole
     assert all(c[0] < 2100 for c in calls[:3]) and calls[-1][2] == 0.0  # the whole take certified exactly
     np.testing.assert_allclose(pieces, whole, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_whole_take_face_in_two_halves_is_the_dense_solve(seed, monkeypatch):
+    """The face of the whole take factored as two halves on two threads and the middle two
+    frames last (one-way dissection) is the dense solve of the same face, whichever of the
+    middle frames' variables are free."""
+    import keyshape.decompose._weighted as weighted
+
+    monkeypatch.setattr(weighted, "SPLIT_FRAMES", 8)
+    problem, G, C, state, X, _ = _random_face(seed, n=13)
+    if seed == 3:
+        state[5:9] = 1  # every variable free around the middle (frames 6, 7)
+    split = weighted._Problem(G, C, problem.mu, problem.upper, split=True)
+    assert split.split
+    P = _dense_hessian(G, problem.mu)
+    fixed = np.where(state == 2, 1.0, 0.0)
+    f = (state == 1).ravel()
+    expected = fixed.ravel().copy()
+    expected[f] = np.linalg.solve(P[np.ix_(f, f)], (C.ravel() - P @ fixed.ravel())[f])
+    ours = X.copy()
+    split.solve(ours, state, split.every)
+    np.testing.assert_allclose(ours.ravel(), expected, rtol=1e-10, atol=1e-10)
+    whole = X.copy()
+    problem.solve(whole, state, problem.every)  # the one-envelope factorisation
+    np.testing.assert_allclose(ours, whole, rtol=1e-10, atol=1e-12)

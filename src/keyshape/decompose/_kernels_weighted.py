@@ -291,24 +291,20 @@ def fill_face(G, C, mu, d0, d1, d2, top, state, X, rows, pos, reach, offset, pac
 
 
 @jit
-def solve_face(G, C, mu, d0, d1, d2, top, state, X, rows, pos, reach, offset, packed, rhs):
-    """Frames ``rows`` (sorted) of ``X`` (in place) on the exact minimiser of their face, the
-    other frames held, in one pass over the envelope: returns False (the free variables of
-    ``rows`` left at 0) if the face is not positive definite.
+def forward_face(G, C, mu, d0, d1, d2, state, X, rows, pos, reach, offset, packed, rhs):
+    """The face of the frames ``rows`` factored and its forward substitution done, in one pass
+    over the envelope: returns the number of free variables, −1 if the face is not positive
+    definite. ``X`` must hold the face's fixed values (read only: see :func:`solve_face`).
 
     The free variables are numbered by :func:`number_face`; the Cholesky factorisation
     ``P_FF = L Lᵀ`` is that of :func:`keyshape.decompose._kernels_face.factor_face`
     (right-looking, column after column, the same operations in the same order), with each
     frame's columns filled (:func:`fill_face`) only just before the first column whose reach
-    gets to them, and the forward substitution ``L y = r`` done on each column as soon as it is
-    final: the envelope is written, factored and read while it is in the cache, instead of
-    three passes over memory. Then ``Lᵀ x = y`` backwards and the free values put back.
-    ``packed`` must hold the envelope (at most ``len(rows)·K·(2K + 1)`` numbers: a column
-    reaches at most ``2K`` below the diagonal), ``rhs`` ``len(rows)·K``.
+    gets to them, and ``L y = r`` solved on each column as soon as it is final: the envelope
+    is written, factored and read while it is in the cache, instead of three passes over
+    memory. ``rhs[: n_free]`` receives ``y``.
     """
     n_free = number_face(state, rows, pos, reach, offset)[0]
-    _hold(top, state, X, rows)
-    n = rows.shape[0]
     K = X.shape[1]
     filled, frame = 0, 0  # columns filled so far, the next frame to fill
     for j in range(n_free):
@@ -321,7 +317,7 @@ def solve_face(G, C, mu, d0, d1, d2, top, state, X, rows, pos, reach, offset, pa
         col = packed[offset[j] : offset[j] + last]
         p = col[0]
         if not p > 0.0:
-            return False
+            return -1
         p = np.sqrt(p)
         col[0] = p
         for o in range(1, last):
@@ -337,19 +333,68 @@ def solve_face(G, C, mu, d0, d1, d2, top, state, X, rows, pos, reach, offset, pa
         rhs[j] = yj
         for o in range(1, last):
             rhs[j + o] -= col[o] * yj
-    for j in range(n_free - 1, -1, -1):  # Lᵀ x = y
+    return n_free
+
+
+@jit
+def forward_tail(n, reach, offset, packed, j0, Y):
+    """``L y = v`` in place for every column ``v`` of ``Y (n − j0, m)``, the entries ``j0 …
+    n − 1`` of vectors zero before ``j0`` (``L (n, n)`` packed as by :func:`forward_face`): only
+    the columns of ``L`` from ``j0`` on are read, and ``y`` is zero before ``j0`` too."""
+    for j in range(j0, n):
+        col = offset[j]
+        for c in range(Y.shape[1]):
+            yj = Y[j - j0, c] / packed[col]
+            Y[j - j0, c] = yj
+            for o in range(1, reach[j] + 1):
+                Y[j + o - j0, c] -= packed[col + o] * yj
+
+
+@jit
+def backward_face(n, reach, offset, packed, y):
+    """``Lᵀ x = y`` in place for ``y (n,)`` (``L`` packed as by :func:`forward_face`)."""
+    for j in range(n - 1, -1, -1):
         c0 = offset[j]
-        s = rhs[j]
+        s = y[j]
         for o in range(1, reach[j] + 1):
-            s -= packed[c0 + o] * rhs[j + o]
-        rhs[j] = s / packed[c0]
-    for i in range(n):
+            s -= packed[c0 + o] * y[j + o]
+        y[j] = s / packed[c0]
+
+
+@jit
+def put_free(X, rows, pos, x):
+    """``X[rows[i], a] = x[pos[i, a]]`` for the free variables (``pos ≥ 0``)."""
+    K = X.shape[1]
+    for i in range(rows.shape[0]):
         t = rows[i]
         for a in range(K):
             j = pos[i, a]
             if j >= 0:
-                X[t, a] = rhs[j]
+                X[t, a] = x[j]
+
+
+@jit
+def solve_face(G, C, mu, d0, d1, d2, top, state, X, rows, pos, reach, offset, packed, rhs):
+    """Frames ``rows`` (sorted) of ``X`` (in place) on the exact minimiser of their face, the
+    other frames held: :func:`forward_face`, then ``Lᵀ x = y`` and the free values put back.
+    Returns False (the free variables of ``rows`` left at 0) if the face is not positive
+    definite. ``packed`` must hold the envelope (at most ``len(rows)·K·(2K + 1)`` numbers: a
+    column reaches at most ``2K`` below the diagonal), ``rhs`` ``len(rows)·K``.
+    """
+    _hold(top, state, X, rows)
+    n_free = forward_face(G, C, mu, d0, d1, d2, state, X, rows, pos, reach, offset, packed, rhs)
+    if n_free < 0:
+        return False
+    backward_face(n_free, reach, offset, packed, rhs)
+    put_free(X, rows, pos, rhs)
     return True
+
+
+@jit
+def hold(top, state, X, rows):
+    """:func:`_hold` for the caller: the bound variables of ``rows`` at their bounds, the free
+    ones at 0."""
+    _hold(top, state, X, rows)
 
 
 @jit

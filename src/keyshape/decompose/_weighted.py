@@ -103,6 +103,7 @@ CYCLING = 4  # changes of side after which a variable counts as cycling
 SWEEPS = 2  # symmetric block Gauss-Seidel sweeps over the frames before the first step
 PIECE_FRAMES = 20_000  # a take of at least twice this many frames is solved in pieces, one per core
 REACH = 1e-6  # ... overlapping by twice the frames over which a change decays by this
+SPLIT_FRAMES = 20_000  # a face of a whole take this long is factored in two halves on two threads
 
 
 def coordinate_weights(seen: np.ndarray, n_dims: int) -> np.ndarray:
@@ -291,8 +292,12 @@ class _Problem:
     """The weighted QP of one region in Gram form: ``G (T, K, K)``, ``C (T, K)``, ``μ``, bounds;
     exact solves of a face on any frames with the others held, and KKT violations."""
 
-    def __init__(self, G, C, mu, upper):
+    def __init__(self, G, C, mu, upper, split=False):
         from . import _kernels, _kernels_weighted
+
+        n = len(C)
+        self.split = bool(split) and n >= SPLIT_FRAMES  # faces of the whole take on two threads
+        self.flip = None  # the buffers of the split's second half, made on first use
 
         self.k0, self.kw = _kernels, _kernels_weighted
         self.G, self.C, self.mu = np.ascontiguousarray(G, dtype=float), np.ascontiguousarray(C, dtype=float), float(mu)
@@ -311,6 +316,79 @@ class _Problem:
         diagonal = np.einsum("tkk->tk", self.G)  # |G_ij| <= max(G_ii, G_jj): G_t is positive semi-definite
         self.g_scale = float(np.abs(self.C).max(initial=0.0) + diagonal.max(initial=0.0) + mu)
 
+    def _solve_split(self, X, state):
+        """The face of the whole take (frames ``0 … T − 1``, ``X`` and ``state`` in place) on two
+        threads: the frames before the middle two, ``A``, and the frames after them, ``B``,
+        numbered from the end backwards, are factored at once (:func:`forward_face`, each on
+        its own envelope), the middle two frames ``S`` last. ``A`` and ``B`` are coupled only
+        through ``S``, so with that order the Cholesky factor of ``P_FF`` is
+        ``[[L_A, 0, 0], [0, L_B, 0], [W_Aᵀ, W_Bᵀ, L_S]]``, ``W_A = L_A⁻¹ P_AS`` (nonzero only on
+        ``A``'s last two frames, which ``P_AS`` couples to ``S``; likewise ``B``'s first two) and
+        ``L_S L_Sᵀ = P_SS − W_AᵀW_A − W_BᵀW_B`` (at most ``2K × 2K``): the same face, exactly,
+        factored as two halves and a small dense block (George & Liu 1981, ch. 6, one-way
+        dissection)."""
+        kw, mu = self.kw, self.mu
+        n, K = X.shape
+        d0, d1, d2 = self.d
+        s = n // 2
+        if self.flip is None:  # B seen backwards: the frames reversed, LᵀL's diagonals reversed
+            m = n - s - 2
+            self.flip = (np.ascontiguousarray(d0[::-1]), np.append(d1[: n - 1][::-1], 0.0),
+                         np.append(d2[: n - 2][::-1], [0.0, 0.0]), np.empty((m, K), np.int64),
+                         np.empty(m * K, np.int64), np.empty(m * K, np.int64), np.empty(m * K * (2 * K + 1)),
+                         np.empty(m * K))
+        e0, e1, e2, pos_b, reach_b, offset_b, packed_b, rhs_b = self.flip
+        kw.hold(self.top, state, X, self.every)
+        rows_a, rows_b = self.every[:s], self.every[: n - s - 2]  # B: u = n − 1 − t for t = n − 1 … s + 2
+        pos_a = self.pos[:s]
+        Xr, Gr, Cr, Sr = X[::-1], self.G[::-1], self.C[::-1], state[::-1]
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            other = pool.submit(kw.forward_face, Gr, Cr, mu, e0, e1, e2, Sr, Xr, rows_b, pos_b, reach_b, offset_b,
+                                packed_b, rhs_b)
+            n_a = kw.forward_face(self.G, self.C, mu, d0, d1, d2, state, X, rows_a, pos_a, self.reach, self.offset,
+                                  self.packed, self.rhs)
+            n_b = other.result()
+        if n_a < 0 or n_b < 0:
+            raise np.linalg.LinAlgError("Cholesky factorisation failed on a face: not positive definite")
+        middle = np.array([s, s + 1])
+        t_s, k_s = np.nonzero(state[middle] == FREE)
+        t_s = t_s + s
+        r_s = self.C[t_s, k_s] - self.hess(X, middle)[t_s - s, k_s]  # X: the face's fixed values
+        same = t_s[:, None] == t_s[None, :]
+        P_ss = np.where(same, self.G[t_s[:, None], k_s[:, None], k_s[None, :]], 0.0)
+        P_ss[np.diag_indices(len(t_s))] += mu * d0[t_s]
+        beside = (t_s[:, None] + 1 == t_s[None, :]) & (k_s[:, None] == k_s[None, :])
+        P_ss += mu * d1[s] * (beside | beside.T)
+        # the couplings of S to A (frames s − 2, s − 1) and to B (frames s + 2, s + 3), as (frame, coefficient)
+        near_a = [(s - 1, np.where(t_s == s, d1[s - 1], d2[s - 1])), (s - 2, np.where(t_s == s, d2[s - 2], 0.0))]
+        near_b = [(s + 2, np.where(t_s == s, d2[s], d1[s + 1])), (s + 3, np.where(t_s == s, 0.0, d2[s + 1]))]
+        tails = []
+        for near, pos, n_h, reach, offset, packed, y, flip in (
+                (near_a, pos_a, n_a, self.reach, self.offset, self.packed, self.rhs, lambda t: t),
+                (near_b, pos_b, n_b, reach_b, offset_b, packed_b, rhs_b, lambda t: n - 1 - t)):
+            idx = [pos[flip(t), k_s] for t, _ in near]
+            free = np.concatenate(idx)
+            j0 = int(free[free >= 0].min()) if (free >= 0).any() else n_h
+            Wt = np.zeros((n_h - j0, len(t_s)))
+            for (_, coef), j in zip(near, idx, strict=True):
+                hit = j >= 0
+                Wt[j[hit] - j0, np.flatnonzero(hit)] = mu * coef[hit]
+            kw.forward_tail(n_h, reach, offset, packed, j0, Wt)  # W = L⁻¹ P_{·S} on the tail
+            P_ss -= Wt.T @ Wt
+            r_s -= Wt.T @ y[j0:n_h]
+            tails.append((Wt, j0, n_h))
+        L_s = np.linalg.cholesky(P_ss)
+        x_s = np.linalg.solve(L_s.T, np.linalg.solve(L_s, r_s))
+        for (Wt, j0, n_h), y in zip(tails, (self.rhs, rhs_b), strict=True):
+            y[j0:n_h] -= Wt @ x_s
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            other = pool.submit(kw.backward_face, n_b, reach_b, offset_b, packed_b, rhs_b)
+            kw.backward_face(n_a, self.reach, self.offset, self.packed, self.rhs)
+            other.result()
+        kw.put_free(X, rows_a, pos_a, self.rhs)
+        kw.put_free(Xr, rows_b, pos_b, rhs_b)
+        X[t_s, k_s] = x_s
+
     def hess(self, X, rows):
         """``(P X)`` on the frames ``rows``: ``(len(rows), K)``."""
         out = np.empty((len(rows), X.shape[1]))
@@ -322,6 +400,9 @@ class _Problem:
         other frames held: the free variables numbered frame-major, their system factored by
         the envelope Cholesky factorisation of :mod:`keyshape.decompose._kernels_face`
         (:func:`keyshape.decompose._kernels_weighted.solve_face`), in the problem's buffers."""
+        if self.split and len(rows) == len(X):
+            self._solve_split(X, state)
+            return
         if not self.kw.solve_face(self.G, self.C, self.mu, *self.d, self.top, state, X, rows, self.pos[: len(rows)],
                                   self.reach, self.offset, self.packed, self.rhs):
             raise np.linalg.LinAlgError("Cholesky factorisation failed on a face: not positive definite")
@@ -501,7 +582,7 @@ def _exact(G, C, const, mu, upper, *, tol=1e-7, valid=None, trace=None, start=No
     (instead of the frames' own and the Gauss–Seidel sweeps). ``certify=False``: return (with
     a gap of ``inf``) once the first local phase has settled, without the face of the whole take
     that would check it (for a piece of :func:`_exact_pieces`, which the joined take's checks)."""
-    problem = _Problem(G, C, mu, upper)
+    problem = _Problem(G, C, mu, upper, split=certify and (os.cpu_count() or 1) > 1)
     n, K = problem.C.shape
     valid = np.abs(problem.G).reshape(n, -1).max(axis=1) > 0.0 if valid is None else np.asarray(valid, bool)
     if start is None:
