@@ -152,18 +152,32 @@ def start(G, C, mu, d0, d1, d2, upper, bounded, valid, state, X, n_sweeps):
             for k in range(K):
                 state[t, k] = state[t - 1, k]
         _box_qp(G[t], C[t], upper, bounded, state[t], X[t], L, rhs, idx)
+    sweep_rows(G, C, mu, d0, d1, d2, upper, bounded, np.arange(T), state, X, n_sweeps)
+
+
+@jit
+def sweep_rows(G, C, mu, d0, d1, d2, upper, bounded, rows, state, X, n_sweeps):
+    """``n_sweeps`` symmetric block Gauss–Seidel sweeps over the frames ``rows`` (the others
+    held): each frame's box QP ``min wᵀ(G_t + μ d0_t I)w − 2 wᵀ(c_t − μ Σ_s (LᵀL)_{ts} w_s)`` by
+    block principal pivoting from its ``state``, forward, then backward; then ``state`` of
+    ``rows`` read off ``X`` (at a bound or free). Monotone in the objective (see :func:`start`)."""
+    K = C.shape[1]
+    L = np.zeros((K, K))
+    rhs, idx = np.empty(K), np.empty(K, np.int64)
     H = np.empty((K, K))
     r = np.empty(K)
+    n = rows.shape[0]
     for sweep in range(2 * n_sweeps):
-        for i in range(T):
-            t = i if sweep % 2 == 0 else T - 1 - i
+        for i in range(n):
+            t = rows[i] if sweep % 2 == 0 else rows[n - 1 - i]
             for a in range(K):
                 r[a] = C[t, a] - mu * with_neighbours(0.0, X, d1, d2, t, a)
                 for b in range(K):
                     H[a, b] = G[t, a, b]
                 H[a, a] += mu * d0[t]
             _box_qp(H, r, upper, bounded, state[t], X[t], L, rhs, idx)
-    for t in range(T):
+    for i in range(n):
+        t = rows[i]
         for k in range(K):
             state[t, k] = LOWER if X[t, k] <= 0.0 else (UPPER if X[t, k] >= upper[k] else FREE)
 
