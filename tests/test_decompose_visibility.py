@@ -399,7 +399,7 @@ def test_weighted_solve_in_pieces_is_the_whole_take_solve(seed, monkeypatch):
     np.testing.assert_allclose(pieces, whole, atol=1e-9)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4])
 def test_a_whole_take_face_in_two_halves_is_the_dense_solve(seed, monkeypatch):
     """The face of the whole take factored as two halves on two threads and the middle two
     frames last (one-way dissection) is the dense solve of the same face, whichever of the
@@ -410,6 +410,8 @@ def test_a_whole_take_face_in_two_halves_is_the_dense_solve(seed, monkeypatch):
     problem, G, C, state, X, _ = _random_face(seed, n=13)
     if seed == 3:
         state[5:9] = 1  # every variable free around the middle (frames 6, 7)
+    if seed == 4:
+        state[6:8] = 0  # none: the halves are independent
     split = weighted._Problem(G, C, problem.mu, problem.upper, split=True)
     assert split.split
     P = _dense_hessian(G, problem.mu)
