@@ -418,6 +418,23 @@ def hold(top, state, X, rows):
 
 
 @jit
+def around(frames, reach, n, out):
+    """The sorted frames within ``reach`` of any of the sorted ``frames`` and inside ``0 … n − 1``,
+    into ``out`` (room for ``len(frames)·(2·reach + 1)``): returns how many. One pass, merging
+    each frame's interval with the one before."""
+    m = 0
+    end = -1  # the last frame written so far
+    for i in range(frames.shape[0]):
+        lo = max(frames[i] - reach, end + 1, 0)
+        hi = min(frames[i] + reach, n - 1)
+        for t in range(lo, hi + 1):
+            out[m] = t
+            m += 1
+        end = max(end, hi)
+    return m
+
+
+@jit
 def kkt(G, C, mu, d0, d1, d2, X, state, upper, rows, x_scale, g_scale, out):
     """Dimensionless KKT violations ``out (len(rows), K)`` of ``X`` on its face (``state``: 0 at
     the lower bound, 1 free, 2 at the upper one), with ``g = c − P X``: positive where the

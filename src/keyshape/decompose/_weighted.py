@@ -515,11 +515,13 @@ def _exchange(X, state, rows, viol, limit=None, flips=None):
 
 
 def _around(frames, reach, n):
-    """The sorted frames within ``reach`` of any of ``frames``."""
+    """The sorted frames within ``reach`` of any of the sorted ``frames`` (int64)."""
+    from . import _kernels_weighted
+
     if not len(frames):
         return frames
-    near = (np.asarray(frames)[:, None] + np.arange(-reach, reach + 1)).ravel()
-    return np.unique(near[(near >= 0) & (near < n)])
+    out = np.empty(min(len(frames) * (2 * reach + 1), n), np.int64)
+    return out[: _kernels_weighted.around(np.asarray(frames, np.int64), reach, n, out)]
 
 
 def _pieces(n_frames: int) -> int:
