@@ -18,6 +18,12 @@ A frame with few free variables then costs little.
 * :func:`fill_face` — the packed lower envelope of ``P_FF (+ ρ_s Σ_{active t} 1 1ᵀ)``;
 * :func:`factor_face` / :func:`solve_face` — ``P_FF = L Lᵀ`` in place, and ``L Lᵀ x = r``.
 
+The visibility-weighted solve (:mod:`keyshape.decompose._weighted`, one ``G_t`` per frame)
+factors its faces on the same envelope, in the same storage and with the same column
+elimination (:mod:`keyshape.decompose._kernels_weighted`, which fills each frame's columns
+just before they are needed); its certificate factors ``P`` with :func:`factor_face` and
+solves with :func:`solve_face`.
+
 References
 ----------
 George, A. & Liu, J. W. (1981). *Computer Solution of Large Sparse Positive Definite Systems*.

@@ -497,6 +497,8 @@ def _exchange(X, state, rows, viol, limit=None, flips=None):
     move = viol > _KKT_TOL
     count = int(move.sum())
     wrong = move.any(axis=1)
+    if not count:  # nothing changes side
+        return 0, wrong
     if limit is not None and count > limit:
         move &= viol >= np.partition(viol.ravel(), -limit)[-limit]
     if flips is not None:
