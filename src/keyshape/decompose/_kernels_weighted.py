@@ -10,8 +10,10 @@ around the changes of an active-set step) and costs only those: a step on a few 
 long take costs the windows. A face's system is built on its free variables only, numbered
 frame-major (:func:`number_face`), packed as its lower envelope (:func:`fill_face`) and factored
 by the envelope Cholesky factorisation of :mod:`keyshape.decompose._kernels_face`, the one the
-unweighted solve uses (:func:`solve_face`): each column costs its own reach, so a frame with
-few free variables costs little, where a band costs its widest frame everywhere.
+unweighted solve uses, each frame filled just before the elimination reaches it and the
+forward substitution on the way (:func:`forward_face`, :func:`backward_face`,
+:func:`solve_face`): each column costs its own reach, so a frame with few free variables costs
+little, where a band costs its widest frame everywhere.
 """
 
 from __future__ import annotations

@@ -24,7 +24,9 @@ region is carried by the smoothness term from the frames around it, as a gap is.
   variables at their bounds and solves the free ones exactly, one Cholesky factorisation of the
   free variables only (numbered frame-major, on their envelope, :mod:`._kernels_face`, as the
   unweighted solve factors its faces), then moves every variable that breaks a KKT condition
-  to the other side.
+  to the other side. A face of a whole take of at least :data:`SPLIT_FRAMES` frames is
+  factored as two halves at once, on two threads, and its middle two frames last (one-way
+  dissection: the same face, exactly, :meth:`_Problem._solve_split`).
 
   - The first active set is every frame's own (its box QP without the smoothness, block
     principal pivoting), then two symmetric block Gauss–Seidel sweeps over the frames (each
