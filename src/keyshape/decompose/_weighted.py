@@ -413,7 +413,15 @@ class _Problem:
         """Dimensionless KKT violations ``(len(rows), K)`` on the current face (> 0: changes side)."""
         out = np.empty((len(rows), X.shape[1]))
         x_scale = self.x_scale(X)
-        self.kw.kkt(self.G, self.C, self.mu, *self.d, X, state, self.upper, rows, x_scale, self.g_scale * x_scale, out)
+        args = (self.G, self.C, self.mu, *self.d, X, state, self.upper)
+        if self.split and len(rows) == len(X):  # the whole take: each half on a thread
+            h = len(rows) // 2
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                other = pool.submit(self.kw.kkt, *args, rows[h:], x_scale, self.g_scale * x_scale, out[h:])
+                self.kw.kkt(*args, rows[:h], x_scale, self.g_scale * x_scale, out[:h])
+                other.result()
+            return out
+        self.kw.kkt(*args, rows, x_scale, self.g_scale * x_scale, out)
         return out
 
     def x_scale(self, X):
