@@ -425,3 +425,6 @@ def test_a_whole_take_face_in_two_halves_is_the_dense_solve(seed, monkeypatch):
     whole = X.copy()
     problem.solve(whole, state, problem.every)  # the one-envelope factorisation
     np.testing.assert_allclose(ours, whole, rtol=1e-10, atol=1e-12)
+    # the KKT check of the whole take in two halves is the one in one pass
+    np.testing.assert_array_equal(split.violations(ours, state, split.every),
+                                  problem.violations(ours, state, problem.every))
