@@ -428,3 +428,31 @@ def test_a_whole_take_face_in_two_halves_is_the_dense_solve(seed, monkeypatch):
     # the KKT check of the whole take in two halves is the one in one pass
     np.testing.assert_array_equal(split.violations(ours, state, split.every),
                                   problem.violations(ours, state, problem.every))
+
+
+def test_a_gap_longer_than_a_piece_is_solved_to_the_certificate(monkeypatch):
+    """A piece without any data (its QP only the smoothness: singular, solved or refused) does
+    not lose the take: the joined take is finished and certified as a whole, as good as
+    without pieces."""
+    import keyshape.decompose._weighted as weighted
+    from keyshape.decompose._solve import _mu
+
+    A, B, weight, upper = _hand_problem(0, n=2100)
+    mu = _mu(A.T @ A, 0.1)
+    seen = np.isfinite(B).all(axis=1) & (weight.mean(axis=1) >= weighted.HIDDEN)
+    seen[550:1550] = False  # the middle piece (frames 700-1400 and its margins) has no data
+    v = np.where(seen[:, None], weight, 0.0)
+    B0 = np.where(seen[:, None], B, 0.0)
+    G, C, sq = weighted.weighted_gram(A, v), (v * B0) @ A, np.einsum("fm,fm->f", v * B0, B0)
+    whole = weighted.solve_weighted_gram(G, C, sq, seen, mu, upper)
+    monkeypatch.setattr(weighted, "PIECE_FRAMES", 500)
+    monkeypatch.setattr(weighted.os, "cpu_count", lambda: 3)
+    pieces = weighted.solve_weighted_gram(G, C, sq, seen, mu, upper)
+    assert np.isfinite(pieces).all() and (pieces >= 0).all() and (pieces <= upper).all()
+
+    def objective(X):
+        D = X[2:] - 2 * X[1:-1] + X[:-2]
+        return float(np.einsum("tk,tkl,tl->", X, G, X) - 2 * np.sum(C * X) + sq.sum() + mu * np.sum(D**2))
+
+    # the gap's weights are barely determined (the objective is flat there): equally good, to the certificate
+    assert abs(objective(pieces) - objective(whole)) <= 1e-7 * objective(whole)

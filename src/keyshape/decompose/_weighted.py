@@ -581,8 +581,11 @@ def _exact_pieces(G, C, sq, mu, upper, *, tol, valid, n_pieces):
         X, _ = _exact(G[part], C[part], float(sq[part].sum()), mu, upper, tol=tol, valid=valid[part], certify=False)
         return X[edges[i] - lo : edges[i + 1] - lo]
 
-    with ThreadPoolExecutor(max_workers=n_pieces) as pool:
-        Z = np.concatenate(list(pool.map(piece, range(n_pieces))))
+    try:
+        with ThreadPoolExecutor(max_workers=n_pieces) as pool:
+            Z = np.concatenate(list(pool.map(piece, range(n_pieces))))
+    except np.linalg.LinAlgError:  # a piece too thin in data to be positive definite (a long gap): whole
+        Z = None
     return _exact(G, C, float(sq.sum()), mu, upper, tol=tol, valid=valid, start=Z)
 
 
