@@ -77,12 +77,21 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
     return SolvedFile(Weights(values, keys.names, source.fps, source.frame_index, source.time), gaps)
 
 
-def _all_seen(source: TrackFile, landmarks: np.ndarray) -> bool:
-    return source.visibility is None or bool((source.visibility[:, landmarks] >= 1.0).all())
+def _all_seen(source: TrackFile, landmarks: np.ndarray, frames: int = 1024) -> bool:
+    """Whether every landmark ``landmarks`` is fully seen in every frame: read a block of frames at
+    a time, stopping at the first that is not (a real track's first frames)."""
+    if source.visibility is None:
+        return True
+    return all(bool((source.visibility[lo : lo + frames][:, landmarks] >= 1.0).all())
+               for lo in range(0, source.n_frames, frames))
 
 
 def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> np.ndarray:
-    """Fill ``take`` from the file, chunk by chunk; returns the (n_frames,) bool frames with a face."""
+    """Fill ``take`` from the file, chunk by chunk; returns the (n_frames,) bool frames with a face.
+
+    Weighted, a chunk goes to :meth:`GramTake.add` whole, with its poses and its rows of the
+    track's visibility (one compiled pass per region); else a block of frames at a time is brought
+    to the canonical frame (in a core's cache) and reduced."""
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
     stable = np.asarray(stable) % keys.n_landmarks
     needed = np.concatenate([stable, take.landmarks])  # of the 478 landmarks, the stable and the regions' ones
@@ -92,10 +101,12 @@ def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> n
     for start, seen, points in source.chunks(needed, frames=chunk):
         face[start : start + len(seen)] = seen
         poses = procrustes(reference, points[:, :n_stable])  # x_image = s R x_canonical + t, per frame
-        seen_here = None if not take.weighted else source.visibility[start : start + len(seen)][:, take.landmarks]
+        if take.weighted:
+            take.add(start, points[:, n_stable:], source.visibility[start : start + len(seen)], poses=poses,
+                     columns=take.landmarks)
+            continue
         for lo in range(0, len(points), block):  # the regions' points block by block, in a core's cache
             part = slice(lo, lo + block)
             pose = Poses(poses.rotations[part], poses.translations[part], poses.scales[part])
-            take.add(start + lo, to_canonical(points[part, n_stable:], pose),
-                     None if seen_here is None else seen_here[part])
+            take.add(start + lo, to_canonical(points[part, n_stable:], pose))
     return face
