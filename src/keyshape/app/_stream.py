@@ -13,6 +13,8 @@ the smoothed weighted solve reads.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -90,15 +92,17 @@ def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> n
     """Fill ``take`` from the file, chunk by chunk; returns the (n_frames,) bool frames with a face.
 
     Weighted, a chunk goes to :meth:`GramTake.add` whole, with its poses and its rows of the
-    track's visibility (one compiled pass per region); else a block of frames at a time is brought
-    to the canonical frame (in a core's cache) and reduced."""
+    track's visibility (one compiled pass per region, on the cores), while the next chunk is read;
+    else a block of frames at a time is brought to the canonical frame (in a core's cache) and
+    reduced."""
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
     stable = np.asarray(stable) % keys.n_landmarks
     needed = np.concatenate([stable, take.landmarks])  # of the 478 landmarks, the stable and the regions' ones
     reference, n_stable = keys.neutral[stable], len(stable)
     face = np.zeros(source.n_frames, dtype=bool)
     block = max(1, _BLOCK_BYTES // (8 * len(take.landmarks) * keys.n_dims))
-    for start, seen, points in source.chunks(needed, frames=chunk):
+    chunks = source.chunks(needed, frames=chunk)
+    for start, seen, points in (_read_ahead(chunks) if take.weighted else chunks):
         face[start : start + len(seen)] = seen
         poses = procrustes(reference, points[:, :n_stable])  # x_image = s R x_canonical + t, per frame
         if take.weighted:
@@ -110,3 +114,13 @@ def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> n
             pose = Poses(poses.rotations[part], poses.translations[part], poses.scales[part])
             take.add(start + lo, to_canonical(points[part, n_stable:], pose))
     return face
+
+
+def _read_ahead(chunks: Iterator[tuple]) -> Iterator[tuple]:
+    """The items of ``chunks``, each next one read on a thread while the caller works on the last
+    (the file's reads and the compiled reduction release the GIL); its errors are raised in order."""
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(next, chunks, None)
+        while (item := ahead.result()) is not None:
+            ahead = pool.submit(next, chunks, None)
+            yield item

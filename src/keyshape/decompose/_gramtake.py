@@ -27,6 +27,7 @@ from ._solve import _check_smoothness, _check_tol, _mu, _upper_bounds, reduce_ro
 __all__ = ["GramTake"]
 
 _PARALLEL_FRAMES = 20_000  # below this many frames a region solves in well under a second: no threads
+_PARALLEL_REDUCE = 1024  # frames of a part of GramTake.add's weighted reduction on a thread of its own
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,12 +147,24 @@ class GramTake:
         elif columns is None:
             columns = np.arange(points.shape[1])
         columns = np.asarray(columns, dtype=np.intp)
-        for region in self._regions:
-            rows = slice(start, stop)
-            hidden = _kernels.weighted_gram_rows(points[:, region.span], rotations, translations, scales, face,
-                                                 self._neutral[region.span], seen, columns[region.span],
-                                                 region.A, region.T, HIDDEN, region.G[rows], region.C[rows],
-                                                 region.sq[rows], region.gone[rows])
+
+        def reduce(job: tuple[_Region, slice]) -> bool:
+            region, part = job
+            rows = slice(start + part.start, start + part.stop)
+            return _kernels.weighted_gram_rows(points[part, region.span], rotations[part], translations[part],
+                                               scales[part], face[part], self._neutral[region.span], seen[part],
+                                               columns[region.span], region.A, region.T, HIDDEN, region.G[rows],
+                                               region.C[rows], region.sq[rows], region.gone[rows])
+
+        # every frame is reduced on its own: the frames are split in one part per core (for enough of them)
+        parts = _parts(n, min(os.cpu_count() or 1, n // _PARALLEL_REDUCE) or 1)
+        tasks = [(r, part) for r in self._regions for part in parts]
+        if len(parts) > 1:
+            with ThreadPoolExecutor(max_workers=len(parts)) as pool:  # the kernel releases the GIL
+                partial = list(pool.map(reduce, tasks))
+        else:
+            partial = [reduce(t) for t in tasks]
+        for (region, _), hidden in zip(tasks, partial):
             region.hidden[0] = region.hidden[0] or bool(hidden)
         self.valid[start:stop] = face
 
