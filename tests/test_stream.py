@@ -279,3 +279,40 @@ def test_weighted_reduction_is_the_formula(perf, keys, posed):
     full[5, 0] = 0.99
     take.add(0, aligned, full)
     assert take._regions[0].hidden[0] and not take._regions[1].hidden[0]
+
+
+def test_weighted_reduction_on_threads_is_the_same(perf, keys, monkeypatch):
+    """A chunk's frames split over threads (GramTake.add) give the one-thread arrays exactly."""
+    from keyshape.decompose import _gramtake
+
+    track = _hidden(perf)
+    aligned = align(track, reference=keys.neutral, stable=perf.stable)[0].points[:, _landmarks(keys)]
+    seen = np.asarray(track.visibility)[:, _landmarks(keys)]
+    one = GramTake(keys, len(aligned), weighted=True)
+    one.add(0, aligned, seen)
+    monkeypatch.setattr(_gramtake, "_PARALLEL_REDUCE", 50)
+    monkeypatch.setattr(_gramtake.os, "cpu_count", lambda: 3)
+    threads = GramTake(keys, len(aligned), weighted=True)
+    threads.add(0, aligned, seen)
+    np.testing.assert_array_equal(threads.valid, one.valid)
+    for a, b in zip(one._regions, threads._regions, strict=True):
+        for name in ("G", "C", "sq", "gone", "hidden"):
+            np.testing.assert_array_equal(getattr(b, name), getattr(a, name))
+
+
+def _landmarks(keys):
+    return GramTake(keys, 0).landmarks
+
+
+def test_chunks_read_ahead_in_order_and_raise_in_place():
+    from keyshape.app._stream import _read_ahead
+
+    def items():
+        yield from range(3)
+        raise InputError("bad frame")
+
+    got = []
+    with pytest.raises(InputError, match="bad frame"):
+        for item in _read_ahead(items()):
+            got.append(item)
+    assert got == [0, 1, 2]
