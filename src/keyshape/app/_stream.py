@@ -32,7 +32,7 @@ from ..schemes import stable_points
 __all__ = ["solve_track_file", "SolvedFile"]
 
 CHUNK = 4096  # frames read and aligned at a time (about 20 MB of float32 points at 478 landmarks)
-_BLOCK_BYTES = 1 << 18  # the regions' points of the frames brought to the canonical frame and reduced at a time
+_BLOCK_BYTES = 1 << 18  # unweighted: the regions' points brought to the canonical frame and reduced at a time
 
 
 @dataclass(frozen=True)

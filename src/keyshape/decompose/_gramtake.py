@@ -6,9 +6,12 @@ take, but in these ``K``-dimensional terms. So a long take is aligned and reduce
 and its landmarks (``n_frames × n_landmarks × n_dims``) never exist all at once.
 
 With the landmarks' visibility (``weighted``), the smoothed weighted solve reads of each frame
-its own Gram matrix ``G_t = Aᵀ V_t A`` (``K × K``, one product per chunk: the visibility times
-the landmarks' outer products), ``c_t = Aᵀ V_t b_t`` and ``b_tᵀ V_t b_t``
-(:func:`keyshape.decompose._weighted.solve_weighted_gram`): ``K² + K + 1`` numbers a frame.
+its own Gram matrix ``G_t = Aᵀ V_t A`` (``K × K``: the visibility times the landmarks' outer
+products), ``c_t = Aᵀ V_t b_t`` and ``b_tᵀ V_t b_t``
+(:func:`keyshape.decompose._weighted.solve_weighted_gram`): ``K² + K + 1`` numbers a frame,
+written by one compiled pass over a chunk's frames per region
+(:func:`keyshape.decompose._kernels.weighted_gram_rows`, which also brings them to the canonical
+frame), on every core, with no temporary of the chunk's size.
 """
 
 from __future__ import annotations
