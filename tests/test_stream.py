@@ -211,3 +211,108 @@ def test_a_track_of_other_landmarks_is_refused_before_it_is_read(keys, tmp_path)
     path = save_track(Track(np.zeros((30, 10, 3)), 30.0, visibility=seen), tmp_path / "other.npz")
     with pytest.raises(InputError, match="the track has 10 landmarks in 3D but the key set was made from 40 in 3D"):
         solve_track_file(path, keys)
+
+
+def _gram_by_formula(A: np.ndarray, points: np.ndarray, neutral: np.ndarray, seen: np.ndarray, hidden_below: float):
+    """One region's weighted Gram form as written out: ``(G, C, sq, gone, partial)`` of frames
+    ``points (n, p, d)``, aligned, with visibility ``seen (n, p)``."""
+    n, d = len(points), points.shape[2]
+    face = np.isfinite(points[:, 0, 0])
+    gone = seen.mean(axis=1) < hidden_below
+    G, C, sq = np.zeros((n, A.shape[1], A.shape[1])), np.zeros((n, A.shape[1])), np.zeros(n)
+    for t in np.flatnonzero(face & ~gone):
+        V = np.diag(np.repeat(seen[t], d))  # coordinate (landmark, dimension) weights
+        b = (points[t] - neutral).reshape(-1)
+        G[t], C[t], sq[t] = A.T @ V @ A, A.T @ V @ b, b @ V @ b
+    return G, C, sq, gone, bool((seen[face] < 1.0).any())
+
+
+@pytest.mark.parametrize("posed", [False, True])
+def test_weighted_reduction_is_the_formula(perf, keys, posed):
+    """The compiled weighted reduction (GramTake.add) gives each frame's Aᵀ V A, Aᵀ V b and bᵀ V b,
+    with fractional visibility, frames without a face and frames whose region is hidden."""
+    from keyshape.alignment import procrustes, to_canonical
+    from keyshape.decompose._weighted import HIDDEN
+
+    rng = np.random.default_rng(3)
+    n = 75  # more than one block of the kernel's frames, and a partial one
+    take = GramTake(keys, n + 10, weighted=True)
+    aligned = align(perf.track[:n], reference=keys.neutral, stable=perf.stable)[0].points[:, take.landmarks]
+    aligned = np.array(aligned)
+    aligned[[4, 40]] = np.nan  # no face
+    seen = rng.uniform(0.0, 1.0, size=aligned.shape[:2]) ** 0.3
+    seen[rng.random(seen.shape) < 0.2] = 1.0
+    seen[rng.random(seen.shape) < 0.05] = 0.0
+    seen[10:13] = 0.0  # every region gone
+    seen[20, take._regions[0].span] = 0.5 * HIDDEN  # one region below HIDDEN
+    seen[21, take._regions[0].span] = 1.5 * HIDDEN  # one just above
+    if posed:  # the points in the image frame, each frame's pose given
+        image = np.array(perf.track.points[:n][:, take.landmarks])
+        image[[4, 40]] = np.nan
+        poses = procrustes(keys.neutral[take.landmarks], image)
+        aligned = np.array(to_canonical(image, poses))
+        columns = rng.permutation(len(take.landmarks) + 5)[: len(take.landmarks)]
+        rows = rng.uniform(size=(n, len(take.landmarks) + 5)).astype(np.float32)
+        rows[:, columns] = seen
+        seen = rows[:, columns].astype(float)  # the float32 values the kernel reads
+        take.add(10, image, rows, poses=poses, columns=columns)
+    else:
+        take.add(10, aligned, seen)
+    np.testing.assert_array_equal(take.valid[10:], np.isfinite(aligned[:, 0, 0]))
+    assert not take.valid[:10].any()
+    for region in take._regions:
+        G, C, sq, gone, partial = _gram_by_formula(region.A, aligned[:, region.span], keys.neutral[take.landmarks][
+            region.span], seen[:, region.span], HIDDEN)
+        np.testing.assert_array_equal(region.gone[10:], gone)
+        assert gone[10:13].all() and (region is not take._regions[0] or (gone[20] and not gone[21]))
+        assert region.hidden[0] == partial
+        scale = np.abs(G).max()
+        np.testing.assert_allclose(region.G[10:], G, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(region.C[10:], C, rtol=0, atol=1e-12 * np.abs(C).max())
+        np.testing.assert_allclose(region.sq[10:], sq, rtol=0, atol=1e-12 * sq.max())
+        assert (region.G[10:][~take.valid[10:] | gone] == 0).all() and (sq[take.valid[10:] & ~gone] > 0).all()
+    full = np.ones(seen.shape)
+    full[[4, 40]] = 0.3  # only frames without a face see less than fully: not hidden
+    take = GramTake(keys, n, weighted=True)
+    take.add(0, aligned, full)
+    assert not any(r.hidden[0] for r in take._regions)
+    full[5, 0] = 0.99
+    take.add(0, aligned, full)
+    assert take._regions[0].hidden[0] and not take._regions[1].hidden[0]
+
+
+def test_weighted_reduction_on_threads_is_the_same(perf, keys, monkeypatch):
+    """A chunk's frames split over threads (GramTake.add) give the one-thread arrays exactly."""
+    from keyshape.decompose import _gramtake
+
+    track = _hidden(perf)
+    aligned = align(track, reference=keys.neutral, stable=perf.stable)[0].points[:, _landmarks(keys)]
+    seen = np.asarray(track.visibility)[:, _landmarks(keys)]
+    one = GramTake(keys, len(aligned), weighted=True)
+    one.add(0, aligned, seen)
+    monkeypatch.setattr(_gramtake, "_PARALLEL_REDUCE", 50)
+    monkeypatch.setattr(_gramtake.os, "cpu_count", lambda: 3)
+    threads = GramTake(keys, len(aligned), weighted=True)
+    threads.add(0, aligned, seen)
+    np.testing.assert_array_equal(threads.valid, one.valid)
+    for a, b in zip(one._regions, threads._regions, strict=True):
+        for name in ("G", "C", "sq", "gone", "hidden"):
+            np.testing.assert_array_equal(getattr(b, name), getattr(a, name))
+
+
+def _landmarks(keys):
+    return GramTake(keys, 0).landmarks
+
+
+def test_chunks_read_ahead_in_order_and_raise_in_place():
+    from keyshape.app._stream import _read_ahead
+
+    def items():
+        yield from range(3)
+        raise InputError("bad frame")
+
+    got = []
+    with pytest.raises(InputError, match="bad frame"):
+        for item in _read_ahead(items()):
+            got.append(item)
+    assert got == [0, 1, 2]

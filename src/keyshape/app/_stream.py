@@ -13,6 +13,8 @@ the smoothed weighted solve reads.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +32,7 @@ from ..schemes import stable_points
 __all__ = ["solve_track_file", "SolvedFile"]
 
 CHUNK = 4096  # frames read and aligned at a time (about 20 MB of float32 points at 478 landmarks)
-_BLOCK_BYTES = 1 << 18  # the regions' points of the frames brought to the canonical frame and reduced at a time
+_BLOCK_BYTES = 1 << 18  # unweighted: the regions' points brought to the canonical frame and reduced at a time
 
 
 @dataclass(frozen=True)
@@ -77,25 +79,48 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
     return SolvedFile(Weights(values, keys.names, source.fps, source.frame_index, source.time), gaps)
 
 
-def _all_seen(source: TrackFile, landmarks: np.ndarray) -> bool:
-    return source.visibility is None or bool((source.visibility[:, landmarks] >= 1.0).all())
+def _all_seen(source: TrackFile, landmarks: np.ndarray, frames: int = 1024) -> bool:
+    """Whether every landmark ``landmarks`` is fully seen in every frame: read a block of frames at
+    a time, stopping at the first that is not (a real track's first frames)."""
+    if source.visibility is None:
+        return True
+    return all(bool((source.visibility[lo : lo + frames][:, landmarks] >= 1.0).all())
+               for lo in range(0, source.n_frames, frames))
 
 
 def _reduce(source: TrackFile, keys: KeyShapes, take: GramTake, chunk: int) -> np.ndarray:
-    """Fill ``take`` from the file, chunk by chunk; returns the (n_frames,) bool frames with a face."""
+    """Fill ``take`` from the file, chunk by chunk; returns the (n_frames,) bool frames with a face.
+
+    Weighted, a chunk goes to :meth:`GramTake.add` whole, with its poses and its rows of the
+    track's visibility (one compiled pass per region, on the cores), while the next chunk is read;
+    else a block of frames at a time is brought to the canonical frame (in a core's cache) and
+    reduced."""
     stable = keys.stable if keys.stable is not None else stable_points(keys.n_landmarks)
     stable = np.asarray(stable) % keys.n_landmarks
     needed = np.concatenate([stable, take.landmarks])  # of the 478 landmarks, the stable and the regions' ones
     reference, n_stable = keys.neutral[stable], len(stable)
     face = np.zeros(source.n_frames, dtype=bool)
     block = max(1, _BLOCK_BYTES // (8 * len(take.landmarks) * keys.n_dims))
-    for start, seen, points in source.chunks(needed, frames=chunk):
+    chunks = source.chunks(needed, frames=chunk)
+    for start, seen, points in (_read_ahead(chunks) if take.weighted else chunks):
         face[start : start + len(seen)] = seen
         poses = procrustes(reference, points[:, :n_stable])  # x_image = s R x_canonical + t, per frame
-        seen_here = None if not take.weighted else source.visibility[start : start + len(seen)][:, take.landmarks]
+        if take.weighted:
+            take.add(start, points[:, n_stable:], source.visibility[start : start + len(seen)], poses=poses,
+                     columns=take.landmarks)
+            continue
         for lo in range(0, len(points), block):  # the regions' points block by block, in a core's cache
             part = slice(lo, lo + block)
             pose = Poses(poses.rotations[part], poses.translations[part], poses.scales[part])
-            take.add(start + lo, to_canonical(points[part, n_stable:], pose),
-                     None if seen_here is None else seen_here[part])
+            take.add(start + lo, to_canonical(points[part, n_stable:], pose))
     return face
+
+
+def _read_ahead(chunks: Iterator[tuple]) -> Iterator[tuple]:
+    """The items of ``chunks``, each next one read on a thread while the caller works on the last
+    (the file's reads and the compiled reduction release the GIL); its errors are raised in order."""
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(next, chunks, None)
+        while (item := ahead.result()) is not None:
+            ahead = pool.submit(next, chunks, None)
+            yield item

@@ -6,9 +6,12 @@ take, but in these ``K``-dimensional terms. So a long take is aligned and reduce
 and its landmarks (``n_frames × n_landmarks × n_dims``) never exist all at once.
 
 With the landmarks' visibility (``weighted``), the smoothed weighted solve reads of each frame
-its own Gram matrix ``G_t = Aᵀ V_t A`` (``K × K``, one product per chunk: the visibility times
-the landmarks' outer products), ``c_t = Aᵀ V_t b_t`` and ``b_tᵀ V_t b_t``
-(:func:`keyshape.decompose._weighted.solve_weighted_gram`): ``K² + K + 1`` numbers a frame.
+its own Gram matrix ``G_t = Aᵀ V_t A`` (``K × K``: the visibility times the landmarks' outer
+products), ``c_t = Aᵀ V_t b_t`` and ``b_tᵀ V_t b_t``
+(:func:`keyshape.decompose._weighted.solve_weighted_gram`): ``K² + K + 1`` numbers a frame,
+written by one compiled pass over a chunk's frames per region
+(:func:`keyshape.decompose._kernels.weighted_gram_rows`, which also brings them to the canonical
+frame), on every core, with no temporary of the chunk's size.
 """
 
 from __future__ import annotations
@@ -20,13 +23,14 @@ from itertools import pairwise
 
 import numpy as np
 
-from ..containers import KeyShapes
+from ..containers import KeyShapes, Poses
 from ..exceptions import InputError
 from ._solve import _check_smoothness, _check_tol, _mu, _upper_bounds, reduce_rows, solve_reduced
 
 __all__ = ["GramTake"]
 
 _PARALLEL_FRAMES = 20_000  # below this many frames a region solves in well under a second: no threads
+_PARALLEL_REDUCE = 1024  # frames of a part of GramTake.add's weighted reduction on a thread of its own
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,6 +41,7 @@ class _Region:
     C: np.ndarray  # (n_frames, K), c_t = Aᵀ b_t (Aᵀ V_t b_t when weighted)
     sq: np.ndarray  # (n_frames,), ‖b_t‖² (b_tᵀ V_t b_t)
     H: np.ndarray | None = None  # (n_landmarks, K²): Σ over a landmark's coordinates of a aᵀ (weighted)
+    T: np.ndarray | None = None  # (n_landmarks, K (K + 1) / 2): H's upper triangles, row by row (weighted)
     G: np.ndarray | None = None  # (n_frames, K, K): Aᵀ V_t A (weighted)
     gone: np.ndarray | None = None  # (n_frames,) bool: the region hidden (no data term; weighted)
     hidden: list | None = None  # [bool]: any landmark of the region seen less than fully (weighted)
@@ -101,32 +106,69 @@ class GramTake:
         if not self.weighted:
             return _Region(ks, span, A, np.empty((n, K)), np.empty(n))
         a = A.reshape(len(landmarks), keys.n_dims, K)  # rows of A are (landmark, dimension) pairs
-        H = np.einsum("pdk,pdl->pkl", a, a).reshape(len(landmarks), K * K)
-        return _Region(ks, span, A, np.empty((n, K)), np.empty(n), H, np.empty((n, K, K)), np.zeros(n, bool), [False])
+        H = np.einsum("pdk,pdl->pkl", a, a)
+        upper = np.triu_indices(K)
+        T = np.ascontiguousarray(H[:, upper[0], upper[1]])
+        return _Region(ks, span, A, np.empty((n, K)), np.empty(n), H.reshape(len(landmarks), K * K), T,
+                       np.empty((n, K, K)), np.zeros(n, bool), [False])
 
-    def add(self, start: int, points: np.ndarray, seen: np.ndarray | None = None) -> None:
-        """Frames ``start ... start + n - 1``: ``points (n, n_needed, n_dims)`` float, aligned onto
-        the key set's neutral, the landmarks :attr:`landmarks`; NaN frames have no face.
-        ``seen (n, n_needed)``: their visibility in [0, 1] (``weighted`` only; None: all seen)."""
-        stop = start + len(points)
-        deltas = points - self._neutral  # b_t of every region, side by side
-        face = np.isfinite(points[:, :1, 0]).all(axis=1) if points.shape[1] else np.ones(len(points), bool)
-        for region in self._regions:
-            B = deltas[:, region.span].reshape(len(points), -1)  # a view: the region's b_t, flattened
-            if not self.weighted:
+    def add(self, start: int, points: np.ndarray, seen: np.ndarray | None = None, *, poses: Poses | None = None,
+            columns: np.ndarray | None = None) -> None:
+        """Frames ``start ... start + n - 1``: ``points (n, n_needed, n_dims)`` float, the landmarks
+        :attr:`landmarks`, aligned onto the key set's neutral, or with ``poses`` (n frames) in the
+        image frame, to be brought to the canonical one (:func:`keyshape.alignment.to_canonical`);
+        NaN frames have no face. ``seen (n, n_needed)``: their visibility in [0, 1] (``weighted``
+        only; None: all seen), or ``(n, n_seen)`` with ``columns (n_needed,)`` int, the landmarks'
+        columns in it (a track's visibility rows, not copied).
+
+        Weighted, each region's frames are reduced in one compiled pass
+        (:func:`keyshape.decompose._kernels.weighted_gram_rows`), straight into its arrays."""
+        n = len(points)
+        stop = start + n
+        face = np.isfinite(points[:, :1, 0]).all(axis=1) if points.shape[1] else np.ones(n, bool)
+        if poses is not None:  # a NaN pose (a degenerate frame) is no face
+            face &= np.isfinite(poses.scales) & np.isfinite(poses.rotations).all(axis=(1, 2)) \
+                & np.isfinite(poses.translations).all(axis=1)
+        if not self.weighted:
+            aligned = points if poses is None else _canonical(points, poses)
+            deltas = aligned - self._neutral  # b_t of every region, side by side
+            for region in self._regions:
+                B = deltas[:, region.span].reshape(n, -1)  # a view: the region's b_t, flattened
                 region.C[start:stop], region.sq[start:stop] = reduce_rows(region.A, B)
-                continue
-            v = np.ones((len(points), region.H.shape[0])) if seen is None else np.asarray(seen[:, region.span], float)
-            region.hidden[0] = region.hidden[0] or bool((v[face] < 1.0).any())
-            from ._weighted import HIDDEN  # (with numba, loaded on the first solve, as in _solve)
+            self.valid[start:stop] = face
+            return
+        from . import _kernels  # (numba, loaded on the first weighted take, as in _solve)
+        from ._weighted import HIDDEN
 
-            gone = v.mean(axis=1) < HIDDEN
-            region.gone[start:stop] = gone
-            v = np.where((face & ~gone)[:, None], v, 0.0)  # no data term: G_t, c_t and b_tᵀV_tb_t all 0
-            B = np.where(face[:, None], B, 0.0)
-            Bv = (B.reshape(len(v), v.shape[1], -1) * v[:, :, None]).reshape(B.shape)  # V_t b_t
-            region.C[start:stop], region.sq[start:stop] = Bv @ region.A, np.einsum("fm,fm->f", Bv, B)
-            region.G[start:stop] = (v @ region.H).reshape(-1, *region.G.shape[1:])
+        if poses is None:
+            d = points.shape[2]
+            rotations, translations, scales = np.repeat(np.eye(d)[None], n, axis=0), np.zeros((n, d)), np.ones(n)
+        else:
+            rotations, translations, scales = poses.rotations, poses.translations, poses.scales
+        if seen is None:
+            seen, columns = np.ones((n, 1)), np.zeros(points.shape[1], np.intp)
+        elif columns is None:
+            columns = np.arange(points.shape[1])
+        columns = np.asarray(columns, dtype=np.intp)
+
+        def reduce(job: tuple[_Region, slice]) -> bool:
+            region, part = job
+            rows = slice(start + part.start, start + part.stop)
+            return _kernels.weighted_gram_rows(points[part, region.span], rotations[part], translations[part],
+                                               scales[part], face[part], self._neutral[region.span], seen[part],
+                                               columns[region.span], region.A, region.T, HIDDEN, region.G[rows],
+                                               region.C[rows], region.sq[rows], region.gone[rows])
+
+        # every frame is reduced on its own: the frames are split in one part per core (for enough of them)
+        parts = _parts(n, min(os.cpu_count() or 1, n // _PARALLEL_REDUCE) or 1)
+        tasks = [(r, part) for r in self._regions for part in parts]
+        if len(parts) > 1:
+            with ThreadPoolExecutor(max_workers=len(parts)) as pool:  # the kernel releases the GIL
+                partial = list(pool.map(reduce, tasks))
+        else:
+            partial = [reduce(t) for t in tasks]
+        for (region, _), hidden in zip(tasks, partial):
+            region.hidden[0] = region.hidden[0] or bool(hidden)
         self.valid[start:stop] = face
 
     def solve(self, start: int = 0, stop: int | None = None, *, upper: float | np.ndarray | None = None,
@@ -173,6 +215,12 @@ class GramTake:
         if smoothness == 0.0:
             values[~valid] = np.nan
         return values
+
+
+def _canonical(points: np.ndarray, poses: Poses) -> np.ndarray:
+    """``Rᵀ (x - t) / s`` of points ``(n, n_points, d)``, as :func:`keyshape.alignment.to_canonical`
+    (which this layer does not import)."""
+    return np.matmul(points - poses.translations[:, None], poses.rotations / poses.scales[:, None, None])
 
 
 def _workers(n_frames: int) -> int:

@@ -274,3 +274,104 @@ def point_multipliers(g, Z, upper, convex, Y):
             else:
                 r = 0.0
             Y[t, k] = nu + r
+
+
+# --------------------------------------------------------------------------- weighted Gram form
+
+_GRAM_FRAMES = 32  # frames of weighted_gram_rows' block: its V b (m × 32) stay in a core's cache
+
+
+@jit
+def weighted_gram_rows(points, rotations, translations, scales, face, neutral, seen, columns, A, T,
+                       hidden_below, G, C, sq, gone):
+    """The weighted Gram form of one region's frames (:class:`keyshape.decompose.GramTake`), in one pass.
+
+    Frame ``f``'s points are brought to the canonical frame, ``y = Rᵀ (x - t) / s`` (as
+    :func:`keyshape.alignment.to_canonical`), ``b = y - neutral``, and with ``v`` the region's
+    visibility in the frame, ``G_f = Σ_p v_p H_p`` (``H_p`` the landmark's ``Σ_d a aᵀ``),
+    ``c_f = Aᵀ V b`` and ``b_fᵀ V b_f`` are written straight into the region's rows: no
+    temporary of the frames' size.
+
+    Parameters
+    ----------
+    points : (n, p, d) float, the region's landmarks (image frame when posed)
+    rotations : (n, d, d), translations : (n, d), scales : (n,) float, the frames' poses
+        (``x = s R y + t``; the identity for points already aligned)
+    face : (n,) bool, the frames with a face (the others get a zero Gram form)
+    neutral : (p, d) float, the region's neutral landmarks
+    seen : (n, n_seen) float, visibility rows; ``columns (p,)`` int: the region's landmarks in them
+    A : (p·d, K) float, the keys' deltas, rows ``(landmark, dimension)``
+    T : (p, K (K + 1) / 2) float, each landmark's ``H_p``, its upper triangle row by row
+    hidden_below : float, a frame whose mean visibility is below this is gone (no data term)
+
+    G : (n, K, K), C : (n, K), sq : (n,) float, gone : (n,) bool, written
+
+    Returns
+    -------
+    bool, whether a frame with a face sees a landmark less than fully.
+    """
+    n, p, d = points.shape
+    m, K = A.shape
+    g = np.empty(T.shape[1])  # G_f's upper triangle
+    vbT = np.empty((m, _GRAM_FRAMES))  # V_f b_f of a block of frames, frame after frame in a row
+    cT = np.empty((K, _GRAM_FRAMES))
+    S = np.empty((d, d))
+    x = np.empty(d)
+    hidden = False
+    for f0 in range(0, n, _GRAM_FRAMES):
+        nb = min(_GRAM_FRAMES, n - f0)
+        for j in range(nb):
+            f = f0 + j
+            total, partial = 0.0, False
+            for q in range(p):
+                v = seen[f, columns[q]]
+                total += v
+                partial |= v < 1.0
+            out = total / p < hidden_below
+            gone[f] = out
+            hidden |= partial and face[f]
+            if out or not face[f]:  # no data term
+                G[f] = 0.0
+                sq[f] = 0.0
+                vbT[:, j] = 0.0
+                continue
+            for a in range(d):
+                for i in range(d):
+                    S[a, i] = rotations[f, a, i] / scales[f]
+            g[:] = 0.0
+            total = 0.0
+            for q in range(p):
+                v = np.float64(seen[f, columns[q]])
+                if v != 0.0:
+                    for r in range(T.shape[1]):
+                        g[r] += v * T[q, r]
+                for a in range(d):
+                    x[a] = points[f, q, a] - translations[f, a]
+                here = 0.0
+                for i in range(d):
+                    y = 0.0
+                    for a in range(d):
+                        y += x[a] * S[a, i]
+                    b = y - neutral[q, i]
+                    vb = b * v
+                    here += vb * b
+                    vbT[q * d + i, j] = vb
+                total += here
+            sq[f] = total
+            r = 0
+            for k in range(K):
+                for u in range(k, K):
+                    G[f, k, u] = g[r]
+                    G[f, u, k] = g[r]
+                    r += 1
+        # c_f = Aᵀ V_f b_f for the block: the innermost loop runs over its frames (no chain of sums)
+        cT[:, :nb] = 0.0
+        for row in range(m):
+            for k in range(K):
+                a_ = A[row, k]
+                for j in range(nb):
+                    cT[k, j] += vbT[row, j] * a_
+        for j in range(nb):
+            for k in range(K):
+                C[f0 + j, k] = cT[k, j]
+    return hidden
