@@ -35,6 +35,10 @@ def test_track_from_other_tools_needs_only_points_and_fps(tmp_path):
     ({"points": np.zeros((3, 4))}, "lacks \\['fps'\\]"),
     ({"points": np.zeros((3, 4, 5)), "fps": 30}, "points must have shape"),
     ({"points": np.zeros((3, 4, 2)), "fps": -1}, "fps must be a positive number"),
+    ({"points": np.zeros((3, 4, 2)), "fps": 30, "visibility": np.full((3, 4), 1.5, np.float32)}, "visibility"),
+    ({"points": np.zeros((3, 4, 2)), "fps": 30, "visibility": np.array([[1, 1, np.nan, 1]] * 3, np.float32)},
+     "visibility.*values in \\[0, 1\\]"),
+    ({"points": np.zeros((3, 4, 2)), "fps": 30, "visibility": np.full((3, 4), -0.1, np.float32)}, "visibility"),
 ])
 def test_bad_track_files(tmp_path, arrays, message):
     np.savez(tmp_path / "bad.npz", **arrays)

@@ -175,9 +175,14 @@ def _check_track_extras(path, arrays: dict, n: int) -> None:
         raise _fail(path, "head_matrix", f"must have shape ({n}, 4, 4); got {matrix.shape}")
     seen = arrays.get("visibility")
     if seen is not None and (not _numeric(seen) or seen.shape != (n, arrays["points"].shape[1])
-                             or not ((seen >= 0) & (seen <= 1)).all()):
+                             or not _within(seen, 0.0, 1.0)):
         raise _fail(path, "visibility", f"must be (n_frames, n_landmarks) = ({n}, {arrays['points'].shape[1]}) "
                                         f"values in [0, 1]; got shape {seen.shape}")
+
+
+def _within(values: np.ndarray, low: float, high: float) -> bool:
+    """Every value in ``[low, high]`` (NaN is not): two reductions, no temporary the size of ``values``."""
+    return bool(values.size == 0 or (values.min() >= low and values.max() <= high))
 
 
 # -- keys.json ----------------------------------------------------------------------------------
