@@ -15,6 +15,8 @@ A frame with few free variables then costs little.
 
 * :func:`number_free` — compressed indices of the free variables, each column's reach and
   where it starts in the packed storage (column after column, each as long as its reach);
+* :func:`lay_out` — that layout for numbered free variables of any sorted frames (the
+  weighted solve's faces on a few frames use it too);
 * :func:`fill_face` — the packed lower envelope of ``P_FF (+ ρ_s Σ_{active t} 1 1ᵀ)``;
 * :func:`factor_face` / :func:`solve_face` — ``P_FF = L Lᵀ`` in place, and ``L Lᵀ x = r``.
 
@@ -56,27 +58,43 @@ def number_free(free, index, reach, offset):
                 n += 1
             else:
                 index[t, i] = -1
+    return n, lay_out(index, np.arange(T), reach, offset)
+
+
+@jit
+def lay_out(index, rows, reach, offset):
+    """The envelope of numbered free variables; returns ``size``, the numbers it holds.
+
+    ``index (n, K)`` int64: the free variables' numbers, frame-major (−1 when fixed), of the
+    frames ``rows (n,)`` (sorted): a free variable couples to the free ones of its own frame and
+    to its key in the next two frames when those are ``rows[i] + 1`` and ``rows[i] + 2`` (frames
+    not among ``rows`` are held). Column ``j`` of the Cholesky factor reaches ``reach[j] = last[j]
+    − j`` below the diagonal, ``last[j]`` the deepest nonzero row of the columns up to ``j``
+    (fill stays inside it), and starts at ``offset[j]`` in the packed storage.
+    """
+    n, K = index.shape
     low = 0  # max over the columns so far of their last nonzero row (absolute)
     size = 0
-    for t in range(T):
+    for i in range(n):
         last_here = -1  # the frame's last free variable: the within-frame couplings reach it
-        for i in range(K):
-            if index[t, i] >= 0:
-                last_here = index[t, i]
-        for i in range(K):
-            j = index[t, i]
+        for a in range(K):
+            last_here = max(last_here, index[i, a])
+        near = i + 1 < n and rows[i + 1] == rows[i] + 1
+        far = i + 2 < n and rows[i + 2] == rows[i] + 2
+        for a in range(K):
+            j = index[i, a]
             if j < 0:
                 continue
             deepest = last_here
-            if t + 1 < T and index[t + 1, i] >= 0:
-                deepest = max(deepest, index[t + 1, i])
-            if t + 2 < T and index[t + 2, i] >= 0:
-                deepest = max(deepest, index[t + 2, i])
+            if near:
+                deepest = max(deepest, index[i + 1, a])
+            if far:
+                deepest = max(deepest, index[i + 2, a])
             low = max(low, deepest)
             reach[j] = low - j
             offset[j] = size
             size += low - j + 1
-    return n, size
+    return size
 
 
 @jit

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._kernels import jit, with_neighbours
+from ._kernels_face import lay_out
 from ._kernels_nnls import FREE, KKT_TOL, LOWER, UPPER, _subspace_minimiser, pivot_row
 
 
@@ -228,28 +229,7 @@ def number_face(state, rows, pos, reach, offset):
                 p += 1
             else:
                 pos[i, a] = -1
-    low = 0  # max over the columns so far of their last nonzero row
-    size = 0
-    for i in range(n):
-        last_here = -1
-        for a in range(K):
-            last_here = max(last_here, pos[i, a])
-        near = i + 1 < n and rows[i + 1] == rows[i] + 1
-        far = i + 2 < n and rows[i + 2] == rows[i] + 2
-        for a in range(K):
-            j = pos[i, a]
-            if j < 0:
-                continue
-            deepest = last_here
-            if near:
-                deepest = max(deepest, pos[i + 1, a])
-            if far:
-                deepest = max(deepest, pos[i + 2, a])
-            low = max(low, deepest)
-            reach[j] = low - j
-            offset[j] = size
-            size += low - j + 1
-    return p, size
+    return p, lay_out(pos, rows, reach, offset)
 
 
 @jit
