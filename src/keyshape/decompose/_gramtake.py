@@ -40,8 +40,8 @@ class _Region:
     A: np.ndarray  # (m, K), the keys' deltas as columns
     C: np.ndarray  # (n_frames, K), c_t = Aᵀ b_t (Aᵀ V_t b_t when weighted)
     sq: np.ndarray  # (n_frames,), ‖b_t‖² (b_tᵀ V_t b_t)
-    H: np.ndarray | None = None  # (n_landmarks, K²): Σ over a landmark's coordinates of a aᵀ (weighted)
-    T: np.ndarray | None = None  # (n_landmarks, K (K + 1) / 2): H's upper triangles, row by row (weighted)
+    T: np.ndarray | None = None  # (n_landmarks, K (K + 1) / 2): the upper triangles of Σ over a landmark's
+    #                              coordinates of a aᵀ, row by row (weighted)
     G: np.ndarray | None = None  # (n_frames, K, K): Aᵀ V_t A (weighted)
     gone: np.ndarray | None = None  # (n_frames,) bool: the region hidden (no data term; weighted)
     hidden: list | None = None  # [bool]: any landmark of the region seen less than fully (weighted)
@@ -109,14 +109,13 @@ class GramTake:
         H = np.einsum("pdk,pdl->pkl", a, a)
         upper = np.triu_indices(K)
         T = np.ascontiguousarray(H[:, upper[0], upper[1]])
-        return _Region(ks, span, A, np.empty((n, K)), np.empty(n), H.reshape(len(landmarks), K * K), T,
-                       np.empty((n, K, K)), np.zeros(n, bool), [False])
+        return _Region(ks, span, A, np.empty((n, K)), np.empty(n), T, np.empty((n, K, K)), np.zeros(n, bool), [False])
 
     def add(self, start: int, points: np.ndarray, seen: np.ndarray | None = None, *, poses: Poses | None = None,
             columns: np.ndarray | None = None) -> None:
         """Frames ``start ... start + n - 1``: ``points (n, n_needed, n_dims)`` float, the landmarks
-        :attr:`landmarks`, aligned onto the key set's neutral, or with ``poses`` (n frames) in the
-        image frame, to be brought to the canonical one (:func:`keyshape.alignment.to_canonical`);
+        :attr:`landmarks`, aligned onto the key set's neutral, or (``weighted`` only) with ``poses``
+        (n frames) in the image frame, brought to the canonical one by the reduction's kernel;
         NaN frames have no face. ``seen (n, n_needed)``: their visibility in [0, 1] (``weighted``
         only; None: all seen), or ``(n, n_seen)`` with ``columns (n_needed,)`` int, the landmarks'
         columns in it (a track's visibility rows, not copied).
@@ -130,8 +129,9 @@ class GramTake:
             face &= np.isfinite(poses.scales) & np.isfinite(poses.rotations).all(axis=(1, 2)) \
                 & np.isfinite(poses.translations).all(axis=1)
         if not self.weighted:
-            aligned = points if poses is None else _canonical(points, poses)
-            deltas = aligned - self._neutral  # b_t of every region, side by side
+            if poses is not None:
+                raise ValueError("poses are for a weighted take; align the points first (alignment.to_canonical)")
+            deltas = points - self._neutral  # b_t of every region, side by side
             for region in self._regions:
                 B = deltas[:, region.span].reshape(n, -1)  # a view: the region's b_t, flattened
                 region.C[start:stop], region.sq[start:stop] = reduce_rows(region.A, B)
@@ -215,12 +215,6 @@ class GramTake:
         if smoothness == 0.0:
             values[~valid] = np.nan
         return values
-
-
-def _canonical(points: np.ndarray, poses: Poses) -> np.ndarray:
-    """``Rᵀ (x - t) / s`` of points ``(n, n_points, d)``, as :func:`keyshape.alignment.to_canonical`
-    (which this layer does not import)."""
-    return np.matmul(points - poses.translations[:, None], poses.rotations / poses.scales[:, None, None])
 
 
 def _workers(n_frames: int) -> int:
