@@ -168,7 +168,7 @@ def test_run_on_a_2d_track_from_another_tool(demo_out, tmp_path):
     assert load_weights_csv(tmp_path / "w.csv").n_channels == load_keys(keys).n_keys >= 4
 
 
-def test_solve_options(demo_out, tmp_path):
+def test_solve_options(demo_out, tmp_path, capsys):
     track, keys = demo_out / "track.npz", demo_out / "keys.json"
     runs = {"default": [], "paper": ["--smooth", "0", "--max", "none"], "convex": ["--convex"]}
     got = {}
@@ -186,6 +186,12 @@ def test_solve_options(demo_out, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["solve", str(track), str(keys), "-o", str(tmp_path / "x.csv"), "--max", "-1"])
     assert exc.value.code == 2
+    # a bound above what a weights file holds is refused before any work (apply would refuse the file)
+    with pytest.raises(SystemExit) as exc:
+        main(["solve", str(track), str(keys), "-o", str(tmp_path / "x.csv"), "--max", "6"])
+    assert exc.value.code == 2
+    assert "at most 5" in capsys.readouterr().err
+    assert not (tmp_path / "x.csv").exists()
 
 
 def test_count_auto_reaches_the_target(demo_out, tmp_path, capsys):

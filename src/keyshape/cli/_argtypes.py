@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-__all__ = ["bound", "non_negative", "positive", "whole", "regions"]
+__all__ = ["bound", "weight_bound", "non_negative", "positive", "whole", "regions"]
 
 
 def _number(text: str) -> float:
@@ -29,6 +29,21 @@ def bound(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"must be a number or 'none'; got {text!r}") from None
     if not value > 0:
         raise argparse.ArgumentTypeError(f"must be > 0 or 'none'; got {value:g}")
+    return value
+
+
+def weight_bound(text: str) -> float:
+    """The solve's upper bound: > 0 and at most ``MAX_WEIGHT`` (5), the largest weight a weights
+    file holds; ``none``/``inf``/``off`` give that ceiling, so every file ``solve`` writes can be read
+    back by ``apply``, ``preview`` and ``export``."""
+    from ..io.validate import MAX_WEIGHT
+
+    value = bound(text)
+    if value is None:
+        return MAX_WEIGHT
+    if value > MAX_WEIGHT:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_WEIGHT:g} (the largest weight a weights file holds) "
+                                         f"or 'none'; got {value:g}")
     return value
 
 

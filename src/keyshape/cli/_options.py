@@ -17,7 +17,7 @@ from ..defaults import (
     MAX_KEYS,
 )
 from ..exceptions import UsageError
-from ._argtypes import bound, non_negative, positive, regions, whole
+from ._argtypes import non_negative, positive, regions, weight_bound, whole
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):
@@ -105,8 +105,10 @@ def add_solve_options(p: argparse.ArgumentParser) -> None:
                    help=f"temporal smoothness, solved over the whole take with no lag (default "
                         f"{DEFAULT_SMOOTHNESS}; 0 = the paper's per-frame NNLS). Short gaps without a "
                         f"face are bridged, longer ones (> 0.5 s) hold the neutral")
-    p.add_argument("--max", type=bound, default=DEFAULT_UPPER, metavar="U",
-                   help=f"upper bound of every weight (default {DEFAULT_UPPER:g}; 'none' lifts it)")
+    p.add_argument("--max", type=weight_bound, default=DEFAULT_UPPER, metavar="U",
+                   help=f"upper bound of every weight, at most 5 (default {DEFAULT_UPPER:g}; 'none' lifts it to 5, "
+                        f"the largest weight a weights file holds; the paper's NNLS has no bound, and a real "
+                        f"take does not come near it)")
     p.add_argument("--convex", action="store_true",
                    help="also require the weights of each region to sum to at most 1")
 
