@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ._argtypes import bound, positive
+from ._argtypes import positive, weight_bound
 from ._options import add_correspondence_option
 
 DESCRIPTION = """\
@@ -84,8 +84,9 @@ def add_arguments(p) -> None:
     p.add_argument("--smoothing", type=_smoothing, default=None, metavar="MINCUT,BETA",
                    help="One Euro filter on the weights (default 3,0.3: at most 53 ms of lag, 0.7 frames "
                         "measured), or 'none'")
-    p.add_argument("--max", type=bound, default=DEFAULT_UPPER, metavar="U",
-                   help=f"upper bound of every weight (default {DEFAULT_UPPER:g}; 'none' lifts it)")
+    p.add_argument("--max", type=weight_bound, default=DEFAULT_UPPER, metavar="U",
+                   help=f"upper bound of every weight, at most 5 (default {DEFAULT_UPPER:g}; 'none' lifts it to 5, "
+                        f"the largest weight a recorded weights file holds)")
     p.add_argument("--face", type=int, default=0, metavar="N", help="which person to follow (0 = the largest)")
     p.add_argument("--size", type=_size, default=None, metavar="WxH", help="camera: ask for this frame size")
     p.add_argument("--camera-fps", type=positive, default=None, metavar="FPS",
