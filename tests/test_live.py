@@ -484,6 +484,10 @@ def test_live_usage_errors(capsys):
     assert "give at least one output" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["live", "0", "--vmc", "127.0.0.1:1"])  # neither --keys nor --calibrate
+    with pytest.raises(SystemExit) as exit_info:  # a recording could not be read back above 5
+        main(["live", "0", "--keys", "k.json", "--vmc", "127.0.0.1:1", "--max", "7"])
+    assert exit_info.value.code == 2
+    assert "--max: must be at most 5" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------- the browser
