@@ -197,16 +197,23 @@ def grey_clip(tmp_path_factory) -> Path:
     return write_video(tmp_path_factory.mktemp("live") / "grey.mp4", frames, fps=25)
 
 
-def test_a_file_plays_at_its_own_rate_and_a_slow_reader_drops(grey_clip):
-    source = open_source(str(grey_clip))
-    assert (source.kind, source.fps, source.size) == ("file", 25.0, (48, 32))
-    box = source.start()
-    got, began = [], time.perf_counter()
+def _drain(box, *, pause: float = 0.0) -> list:
+    """``(frame, time taken)`` for every frame read from ``box`` until it closes, ``pause`` s after each."""
+    got = []
     while not box.closed or box.pending:
         frame = box.get(0.5)
         if frame is not None:
             got.append((frame, time.perf_counter()))
-            time.sleep(0.1)  # a reader at 10 frames/s: 2-3 frames in 4 are dropped, none queued
+            time.sleep(pause)
+    return got
+
+
+def test_a_file_plays_at_its_own_rate_and_a_slow_reader_drops(grey_clip):
+    source = open_source(str(grey_clip))
+    assert (source.kind, source.fps, source.size) == ("file", 25.0, (48, 32))
+    box = source.start()
+    began = time.perf_counter()
+    got = _drain(box, pause=0.1)  # a reader at 10 frames/s: 2-3 frames in 4 are dropped, none queued
     elapsed = time.perf_counter() - began
     source.stop()
     assert 0.9 < elapsed < 2.0, elapsed  # 25 frames at 25 fps: about a second, not "as fast as it decodes"
@@ -214,6 +221,21 @@ def test_a_file_plays_at_its_own_rate_and_a_slow_reader_drops(grey_clip):
     lags = [taken - frame.arrival for frame, taken in got]
     assert max(lags) < 0.1, lags  # what is taken is fresh (queued, the last would be ~1 s old)
     assert [f.index for f, _ in got] == sorted(f.index for f, _ in got)
+
+
+def test_a_stream_is_held_to_its_own_clock(grey_clip):
+    # a URL of a stored file decodes flat out (25 frames in ~0.04 s here); held to its presentation
+    # times it plays as a camera would deliver it, so its decoding cannot starve the loop
+    source = open_source("file://" + str(grey_clip))
+    assert (source.kind, source.fps, source.size) == ("stream", 25.0, (48, 32))
+    box = source.start()
+    began = time.perf_counter()
+    got = [frame for frame, _ in _drain(box)]
+    elapsed = time.perf_counter() - began
+    source.stop()
+    assert 0.9 < elapsed < 2.0, elapsed
+    assert box.delivered == 25 and [f.index for f in got] == sorted(f.index for f in got)
+    assert got[-1].time - got[0].time == pytest.approx(24 / 25, abs=0.01)
 
 
 def test_sources_are_named_clearly(tmp_path):

@@ -15,8 +15,9 @@ Live Link Face app's UDP packets, for MetaHuman and ARKit-named rigs), the brows
 (camera and character side by side, on 127.0.0.1), and a recording of the take.
 
 SOURCE is a camera (0, /dev/video0), a video file (played at its own frame rate, as a camera
-would deliver it) or a stream URL PyAV opens. Frames the machine cannot keep up with are
-dropped, never queued: the lag does not grow; drops are reported at the end.
+would deliver it) or a stream URL PyAV opens (held to its own clock too). Frames the machine
+cannot keep up with are dropped, never queued: the lag does not grow; drops are reported at the
+end.
 
 Keys come from a previous take (--keys) or a range-of-motion calibration of the first seconds
 (--calibrate). Re-capture the neutral at any time: press n then Enter in the terminal, or send

@@ -187,16 +187,38 @@ class FrameSource:
         self.mailbox.close()
 
     def _read_live(self) -> None:
-        start = None
+        """Deliver a camera's or stream's frames as they are decoded; a stream's are held to their
+        presentation times (a URL of a stored file, or a server that sends faster than real time,
+        would otherwise be decoded flat out, starving the loop of the interpreter)."""
+        start = origin = None
         for index, (media, rgb) in enumerate(decode_stream(self._container)):
             if self._stop.is_set():
                 break
+            if self.kind == "stream" and media is not None:
+                origin = self._hold(origin, media)
+                if origin is None:
+                    break
             arrival = time.perf_counter()
             start = arrival if start is None else start
             self.mailbox.put(SourceFrame(index, arrival - start if media is None else media, arrival, rgb))
         if not self._stop.is_set() and self.kind == "camera":
             raise OSError("end of the camera's stream (unplugged?)")
         self.mailbox.close()
+
+    def _hold(self, origin: float | None, media: float) -> float | None:
+        """Wait until ``media`` seconds after the stream's first frame; returns the clock's origin
+        (re-anchored here when the stream's clock jumps by over a second, or after a stall), None
+        when stopped while waiting."""
+        now = time.perf_counter()
+        wait = 0.0 if origin is None else origin + media - now
+        if origin is None or not -MAX_DRIFT <= wait <= MAX_DRIFT:
+            return now - media
+        if wait > 0 and self._stop.wait(wait):
+            return None
+        return origin
+
+
+MAX_DRIFT = 1.0  # seconds a stream may run ahead of or behind its own clock before it is re-anchored
 
 
 def pin_thread(cpu: int) -> set[int] | None:
