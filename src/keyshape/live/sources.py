@@ -28,6 +28,8 @@ from ..exceptions import InputError
 
 __all__ = ["SourceFrame", "Mailbox", "FrameSource", "open_source", "camera_input", "pin_thread"]
 
+MAX_DRIFT = 1.0  # seconds a stream may run ahead of or behind its own clock before it is re-anchored
+
 
 @dataclass(frozen=True, eq=False)
 class SourceFrame:
@@ -178,10 +180,8 @@ class FrameSource:
         for index, (ms, rgb) in enumerate(iter_frames(self.device, fps=self._rate)):
             if self._stop.is_set():
                 break
-            now = time.perf_counter()
-            origin = now - ms / 1000 if origin is None else origin
-            wait = origin + ms / 1000 - now
-            if wait > 0 and self._stop.wait(wait):
+            origin = self._hold(origin, ms / 1000, drift=None)
+            if origin is None:
                 break
             self.mailbox.put(SourceFrame(index, ms / 1000, time.perf_counter(), rgb))
         self.mailbox.close()
@@ -205,20 +205,18 @@ class FrameSource:
             raise OSError("end of the camera's stream (unplugged?)")
         self.mailbox.close()
 
-    def _hold(self, origin: float | None, media: float) -> float | None:
-        """Wait until ``media`` seconds after the stream's first frame; returns the clock's origin
-        (re-anchored here when the stream's clock jumps by over a second, or after a stall), None
-        when stopped while waiting."""
+    def _hold(self, origin: float | None, media: float, *, drift: float | None = MAX_DRIFT) -> float | None:
+        """Wait until ``media`` seconds (a frame's presentation time) after ``origin`` on
+        ``time.perf_counter``'s clock; returns the origin, set at the first frame (``origin`` None)
+        and, with ``drift``, set again when the source's clock jumps or stalls by more than that;
+        None when stopped while waiting."""
         now = time.perf_counter()
         wait = 0.0 if origin is None else origin + media - now
-        if origin is None or not -MAX_DRIFT <= wait <= MAX_DRIFT:
+        if origin is None or (drift is not None and not -drift <= wait <= drift):
             return now - media
         if wait > 0 and self._stop.wait(wait):
             return None
         return origin
-
-
-MAX_DRIFT = 1.0  # seconds a stream may run ahead of or behind its own clock before it is re-anchored
 
 
 def pin_thread(cpu: int) -> set[int] | None:
