@@ -5,7 +5,8 @@
    472 frames), lightly smoothed, with the clip's head rotation (MediaPipe's head matrix).
 2. **Video.** Each frame is rendered by keyshape's own renderer (OpenGL on EGL), coloured so the
    tracker sees a face (skin, lips, brows, lashes, irises, teeth; ICT's translucent eye overlays
-   left out), and written to an H.264 MP4.
+   left out), its eyeballs turned by the gaze weights as an actor's eyes turn (ICT's ``eyeLook*``
+   targets move only the lids), and written to an H.264 MP4.
 3. **The route under test.** ``keyshape run VIDEO --rig ict.glb --auto-targets`` (through
    :func:`keyshape.app.run_take`), ``ict.glb`` being ICT as a user's file holds it: its colours
    (COLOR_0), no translucent overlays. The real MediaPipe tracks the video, key shapes are found,
@@ -13,7 +14,8 @@
 4. **Scores**, as mean vertex error over the mean displacement from neutral (100 % = a frozen
    face), on ICT's face area and on its upper (brows, eyes) and lower (nose tip down) halves:
 
-   * ``keyshape``: the run's weights through its ``map.json``;
+   * ``keyshape``: the target weights of the run's ``animation.glb`` (its weights through its
+     ``map.json``, the gaze targets following the gaze scores frame by frame);
    * ``mediapipe``: MediaPipe's own 52 scores of the rendered video driving the same rig (the peer's
      naive path);
    * ``oracle (>= 0)``: the best non-negative key → shape mapping, fitted on the truth from the same
@@ -145,20 +147,62 @@ def head_rotations(head_matrix: np.ndarray) -> np.ndarray:
 
 
 def render_video(rig, weights: np.ndarray, rotations: np.ndarray, path: Path, fps: float, colours,
-                 *, size: int = 512, pivot=(0.0, 0.0, -0.02)) -> Path:
-    """The rig posed frame by frame, turned by ``rotations`` about ``pivot``, as an MP4 ``size`` pixels square."""
+                 *, size: int = 512, pivot=(0.0, 0.0, -0.02), turn_eyes: bool = True) -> Path:
+    """The rig posed frame by frame, turned by ``rotations`` about ``pivot``, as an MP4 ``size`` pixels square.
+
+    With ``turn_eyes`` the eyeballs turn with the frame's gaze weights (:func:`eye_rotations`), as
+    an actor's do: ICT's ``eyeLook*`` targets move only the lids, so without it the irises stay
+    centred whatever the gaze, and the tracker reads the lids' shift as a look the other way.
+    """
     from keyshape.render import frame_points, make_renderer
     from keyshape.render.encode import VideoWriter
 
     pivot = np.asarray(pivot)
     camera = frame_points(rig.vertices[_part("face")], margin=1.25)
     faces = rendered_faces(rig.faces)
+    eyes = [(_part(side), _sphere_centre(rig.vertices[_part(side)])) for side in ("eyeball_left", "eyeball_right")]
+    turns = eye_rotations(weights, rig.names) if turn_eyes else None
     with make_renderer(faces, size, size, n_vertices=rig.n_vertices, backend="gl", colours=colours) as renderer, \
             VideoWriter(path, size, size, fps, crf=16) as out:
         for f in range(len(weights)):
             posed = rig.pose(weights[f : f + 1])[0]
+            if turns is not None:
+                for (ids, centre), turn in zip(eyes, turns[f]):
+                    posed[ids] = (posed[ids] - centre) @ turn.T + centre
             out.write(renderer.render((posed - pivot) @ rotations[f].T + pivot, camera))
     return path
+
+
+def eye_rotations(weights: np.ndarray, names, *, degrees: float = 30.0) -> np.ndarray:
+    """Eyeball rotations ``(n_frames, 2, 3, 3)`` (left eye at +x, then right) from ARKit gaze weights.
+
+    Each ``eyeLook*`` weight is a turn of ``degrees`` (keyshape's ``GAZE_DEGREES``): the left eye
+    turns toward +x by ``Out_L − In_L``, the right toward −x by ``Out_R − In_R``, both up by
+    ``Up − Down``. ICT faces +z with +y up.
+    """
+    from scipy.spatial.transform import Rotation
+
+    index = {n: i for i, n in enumerate(names)}
+
+    def w(name):
+        return weights[:, index[name]] if name in index else np.zeros(len(weights))
+
+    out = np.empty((len(weights), 2, 3, 3))
+    for e, (side, sign) in enumerate((("L", 1.0), ("R", -1.0))):
+        yaw = np.radians(degrees) * sign * (w(f"eyeLookOut_{side}") - w(f"eyeLookIn_{side}"))
+        pitch = np.radians(degrees) * (w(f"eyeLookUp_{side}") - w(f"eyeLookDown_{side}"))
+        # yaw about +y takes +z toward +x; looking up takes +z toward +y, a negative turn about +x
+        out[:, e] = (Rotation.from_rotvec(np.column_stack([np.zeros_like(yaw), yaw, np.zeros_like(yaw)]))
+                     * Rotation.from_rotvec(np.column_stack([-pitch, np.zeros_like(pitch), np.zeros_like(pitch)]))
+                     ).as_matrix()
+    return out
+
+
+def _sphere_centre(points: np.ndarray) -> np.ndarray:
+    """The least-squares sphere centre of ``points (n, 3)``: ``|p|² = 2 c·p + k``."""
+    design = np.column_stack([2 * points, np.ones(len(points))])
+    solution = np.linalg.lstsq(design, (points**2).sum(axis=1), rcond=None)[0]
+    return solution[:3]
 
 
 def vertex_error(rig, truth: np.ndarray, estimate: np.ndarray, vertex_sets: dict) -> dict:
@@ -256,14 +300,14 @@ def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndar
     """``keyshape run VIDEO --rig RIG --auto-targets``, its result and the other routes scored on ``rig``."""
     from keyshape.app import RunOptions, run_take
     from keyshape.io import load_track, load_weights_csv
-    from keyshape.targets import Mapping, retarget
+    from keyshape.io.gltf import read_glb_animation
 
     summary = run_take(video, run, RunOptions(rig=rig_folder, auto_targets=True, preview=False, extras=False),
                        progress=False)
     tracked = load_track(run / "track.npz")
     key_weights = load_weights_csv(run / "weights.csv")
-    mapping = Mapping.from_file(run / "map.json", targets=rig.names)
-    estimates = {"keyshape": retarget(key_weights, mapping).values,
+    written = read_glb_animation(run / "animation.glb")  # the keyshape animation, as a viewer plays it
+    estimates = {"keyshape": np.column_stack([written.weights[:, written.names.index(n)] for n in rig.names]),
                  "mediapipe": np.nan_to_num(tracked.blendshapes) @ arkit_to_rig(tracked.blendshape_names,
                                                                                 rig.names).T}
     estimates.update(oracles(key_weights.values, truth))

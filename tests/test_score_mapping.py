@@ -51,3 +51,29 @@ def test_frames_without_a_face_are_left_out():
     bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=scores, weights=weights)
     mapping = _take_mapping(keys, rig, np.eye(6), own, bundle, np.zeros(6))
     assert np.isfinite(mapping.matrix).all() and np.abs(mapping.matrix - gains).max() < 0.06
+
+
+def test_gaze_follows_its_scores_frame_by_frame():
+    """Gaze on its own channel: each gaze target follows its score less the character's rest
+    reading; the keys (expressions) cannot carry a look that is independent of them."""
+    from keyshape.targets import gaze_from_scores
+
+    keys, rig, own, gains, offset, weights, truth, scores = _setup(seed=2)
+    rng = np.random.default_rng(3)
+    look = np.clip(0.5 + 0.4 * np.sin(np.arange(len(weights)) / 9.0), 0, 1)  # a slow look, not an expression
+    names = ("eyeLookInLeft", "eyeLookOutRight", "jawOpen")
+    rest = {"eyeLookInLeft": 0.1, "eyeLookOutRight": 0.05}
+    read = np.column_stack([look + 0.1, look + 0.05, rng.uniform(size=len(look))])
+    read[[0, 7, 8]] = np.nan  # frames without a face; the first is held from the next
+    rig_names = ("jawOpen", "eyeLookIn_L", "eyeLookOut_R", "eyeLookIn_R")
+    columns, values = gaze_from_scores(read, names, rig_names, rest=rest)
+    assert list(columns) == [1, 2]  # gaze targets some score names; jawOpen is not gaze
+    expected = np.column_stack([look, look])
+    expected[[7, 8]] = (2 * expected[6] + expected[9]) / 3, (expected[6] + 2 * expected[9]) / 3
+    expected[0] = expected[1]
+    np.testing.assert_allclose(values, expected, atol=1e-12)
+    # the same look read through the key weights (what a key mapping can do) is nearly flat
+    bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=np.column_stack([look] * 6), weights=weights)
+    through_keys = _take_mapping(keys, rig, np.eye(6), own, bundle, np.zeros(6))
+    fitted = through_keys.offset[0] + weights @ through_keys.matrix[0]
+    assert np.abs(fitted - look).mean() > 10 * np.abs(values[1:, 0] - look[1:]).mean() + 0.1

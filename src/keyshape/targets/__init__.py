@@ -22,6 +22,7 @@ from ._propose import (
     KeyScores,
     auto_targets,
     default_character,
+    gaze_from_scores,
     propose_mapping,
     propose_targets,
     proposer,
@@ -30,7 +31,7 @@ from ._propose import (
 from ._transfer import LandmarkMotion, feature_groups, landmark_motion, spread, transfer_expressions
 
 __all__ = ["Mapping", "retarget", "complete_mirrors", "mirror_sources",
-           "AutoTargets", "KeyScores", "auto_targets", "propose_targets", "propose_mapping", "proposer",
+           "AutoTargets", "KeyScores", "auto_targets", "gaze_from_scores", "propose_targets", "propose_mapping", "proposer",
            "resolve_correspondence",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
            "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",
