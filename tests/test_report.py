@@ -96,6 +96,26 @@ def test_take_numbers():
     json.dumps(numbers)  # JSON-ready
 
 
+def test_key_frames_are_the_videos_own_under_start(tmp_path):
+    """A take tracked from frame 100 (``--start 100``): keys and neutral are rows of the track, the
+    report shows the video's frame numbers and times; a key from another take has none."""
+    from keyshape.report._html import write_report
+
+    perf = make_performance(n_frames=50, n_keys=2, noise=0.0, random_state=1)
+    track = Track(perf.track.points, 25.0, frame_index=np.arange(100, 150), time=np.arange(100, 150) / 25.0)
+    keys = KeyShapes(perf.neutral, perf.key_deltas, ("u0", "l0"), [3, 40], perf.key_regions, perf.regions,
+                     takes=("a.mp4", "b.mp4"), neutral_frame=7, neutral_take="a.mp4")
+    fit = fit_quality(Track(perf.canonical, 25.0), keys, Weights(perf.true_weights, keys.names, 25.0))
+    numbers = take_numbers(track, keys, fit, take="a.mp4")
+    assert numbers["key_frames"] == [{"frame": 103, "time": 4.12}, None]
+    assert numbers["neutral_video_frame"] == {"frame": 107, "time": 4.28} and numbers["neutral_frame"] == 7
+    page = write_report(tmp_path / "report.html", numbers, keys, title="t", images={}).read_text()
+    table = page[page.index('<table id="keys">'):]
+    assert '<td class="n">103</td><td class="n">4.12 s</td>' in table  # the video's frame and time
+    assert '<td class="n">40</td><td class="n">1.60 s</td>' in table  # another take: its own row
+    assert "7 (video frame 107)" in page
+
+
 # --------------------------------------------------------------------------- report.html
 
 

@@ -150,8 +150,13 @@ def gap_runs(valid: np.ndarray) -> tuple[int, int]:
     return len(gaps), max((n for _, n in gaps), default=0)
 
 
-def take_numbers(track: Track, keys: KeyShapes, fit: FitQuality) -> dict:
-    """The report's numbers as a JSON-ready dict: frames, detection, gaps, K, errors per region."""
+def take_numbers(track: Track, keys: KeyShapes, fit: FitQuality, *, take: str = "") -> dict:
+    """The report's numbers as a JSON-ready dict: frames, detection, gaps, K, errors per region.
+
+    ``keys.frames`` and ``neutral_frame`` are rows of the track; ``key_frames`` gives, per key,
+    the video's own frame number and time (``track.frame_index``, ``track.time``: they differ under
+    ``--start``), or None for a key from another take than ``take``.
+    """
     n_gaps, longest = gap_runs(track.valid)
     regions = {}
     for region in keys.regions:
@@ -172,7 +177,16 @@ def take_numbers(track: Track, keys: KeyShapes, fit: FitQuality) -> dict:
         "neutral_frame": int(keys.neutral_frame), "method": keys.method, "n_keys": keys.n_keys,
         "error_unit": fit.unit, "hull_tolerance": fit.tolerance, "regions": regions,
         "neutral": neutral_numbers(track, keys), "hidden": hidden_numbers(track, keys),
+        "key_frames": [_video_frame(track, int(f), keys.takes[k], take) for k, f in enumerate(keys.frames)],
+        "neutral_video_frame": _video_frame(track, int(keys.neutral_frame), keys.neutral_take, take),
     }
+
+
+def _video_frame(track: Track, row: int, source: str, take: str) -> dict | None:
+    """``{"frame": the video's frame number, "time": s}`` of a track row of this take, else None."""
+    if (source and take and source != take) or not 0 <= row < track.n_frames:
+        return None
+    return {"frame": int(track.frame_index[row]), "time": _round(float(track.time[row]), 3)}
 
 
 def neutral_numbers(track: Track, keys: KeyShapes) -> dict | None:

@@ -68,7 +68,7 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     for caption_text, png in images.items():
         parts += [f"<h2>{html.escape(caption_text)}</h2>",
                   f'<img alt="{html.escape(caption_text)}" src="{data_uri(png, "image/png")}">']
-    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"]), _definitions(numbers)]
+    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"], numbers.get("key_frames")), _definitions(numbers)]
     data = json.dumps(numbers).replace("</", "<\\/")
     document = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
                 f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>\n"
@@ -109,11 +109,19 @@ def _hidden_note(n: dict) -> str:
             "bridges fully hidden spans with the smoothness term (shaded in the weights plot).</p>")
 
 
+def _neutral_frame(n: dict) -> str:
+    """The neutral's frame of the take (what ``--neutral`` takes), and the video's own number when
+    the take starts later (``--start``)."""
+    at = n.get("neutral_video_frame")
+    shown = str(n["neutral_frame"])
+    return shown + (f' (video frame {at["frame"]})' if at and at["frame"] != n["neutral_frame"] else "")
+
+
 def _numbers_table(n: dict) -> str:
     rows = [("frames", n["frames"]), ("frames with a face", n["frames_with_face"]),
             ("detection rate", f'{n["detection_rate"]:.2f} %'), ("gaps (runs of frames without a face)", n["gaps"]),
             ("longest gap", f'{n["longest_gap_frames"]} frames ({n["longest_gap_s"]:g} s)'),
-            ("neutral frame", n["neutral_frame"]), ("key shapes in all", n["n_keys"])]
+            ("neutral frame", _neutral_frame(n)), ("key shapes in all", n["n_keys"])]
     body = "".join(f'<tr><th>{html.escape(k)}</th><td class="n" data-key="{html.escape(k)}">{v}</td></tr>'
                    for k, v in rows)
     return f'<table id="take">{body}</table>'
@@ -135,11 +143,19 @@ def _fmt(value) -> str:
     return "–" if value is None else f"{value:.2f}"
 
 
-def _keys_table(keys: KeyShapes, fps: float) -> str:
+def _keys_table(keys: KeyShapes, fps: float, video_frames=None) -> str:
+    """One row per key: its frame and time in the video (``video_frames``, from :func:`take_numbers`;
+    the track row over ``fps`` for a key of another take)."""
+    video_frames = video_frames or [None] * keys.n_keys
+
+    def when(k):
+        at = video_frames[k]
+        return (at["frame"], at["time"]) if at else (int(keys.frames[k]), keys.frames[k] / fps)
+
     rows = "".join(f"<tr><td>{html.escape(keys.names[k])}</td><td>{html.escape(keys.key_regions[k])}</td>"
-                   f'<td class="n">{int(keys.frames[k])}</td><td class="n">{keys.frames[k] / fps:.2f} s</td>'
+                   f'<td class="n">{when(k)[0]}</td><td class="n">{when(k)[1]:.2f} s</td>'
                    f"<td>{html.escape(keys.takes[k])}</td></tr>" for k in range(keys.n_keys))
-    return ('<table id="keys"><tr><th>name</th><th>region</th><th>frame</th><th>time</th><th>take</th></tr>'
+    return ('<table id="keys"><tr><th>name</th><th>region</th><th>video frame</th><th>time</th><th>take</th></tr>'
             f"{rows}</table>")
 
 

@@ -71,7 +71,7 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
     outdir = Path(outdir)
     take = _load_take(outdir)
     fit = fit_quality(take.aligned, take.keys, take.weights, tolerance=tolerance)
-    numbers = take_numbers(take.track, take.keys, fit)
+    numbers = take_numbers(take.track, take.keys, fit, take=take.name)
     pictures = _pictures(outdir, take, fit, k_table)
     notes = [] if take.video is not None else [(f"The source video {take.info.get('video')!r} was not found: "
                                                 "landmarks are drawn on a blank background.")]
