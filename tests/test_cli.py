@@ -238,17 +238,24 @@ def test_run_auto_targets_onto_a_human_like_rig(demo_clip, demo_out, tmp_path):
     assert anim.weights.shape[0] == 96 and anim.weights.max() > 0.05
     # the proposal is saved beside the outputs, and it is exactly what drove the character, but for
     # the gaze targets, which follow the gaze scores frame by frame (less the character's at rest)
-    from keyshape.targets import Mapping, gaze_from_scores, retarget
+    from keyshape.targets import Mapping, drive_gaze, retarget
 
     mapping = Mapping.from_file(out / "map.json", targets=list(anim.names))
-    driven = retarget(load_weights_csv(out / "weights.csv"), mapping)
     track = load_track(out / "track.npz")
+    driven = retarget(load_weights_csv(out / "weights.csv"), mapping)
+    np.testing.assert_allclose(drive_gaze(driven, mapping, track.blendshapes, track.blendshape_names).values,
+                               anim.weights, atol=1e-5)
     rest = json.loads((out / "correspondence.json").read_text())["rest_scores"]
-    gaze, looks = gaze_from_scores(track.blendshapes, track.blendshape_names, anim.names, rest=rest)
-    assert len(gaze) == 8 and not mapping.matrix[gaze].any() and looks.std(axis=0).max() > 0.02
-    expression = np.setdiff1d(np.arange(len(anim.names)), gaze)
-    np.testing.assert_allclose(driven.values[:, expression], anim.weights[:, expression], atol=1e-5)
-    np.testing.assert_allclose(looks, anim.weights[:, gaze], atol=1e-5)
+    gaze = [anim.names.index(t) for t, _, _ in mapping.gaze]
+    assert len(gaze) == 8 and not mapping.matrix[gaze].any() and anim.weights[:, gaze].std(axis=0).max() > 0.02
+    assert {t: r for t, _, r in mapping.gaze}["eyeLookInLeft"] == pytest.approx(rest["eyeLookInLeft"], abs=1e-6)
+    # retarget with the track reproduces the run's animation, gaze included
+    again_glb = tmp_path / "again.glb"
+    assert main(["retarget", str(out / "weights.csv"), "--rig", str(demo_out / "animation.glb"), "--map",
+                 str(out / "map.json"), "--track", str(out / "track.npz"), "-o", str(again_glb), "-q"]) == 0
+    redone = read_glb_animation(again_glb)
+    np.testing.assert_allclose(np.column_stack([redone.weights[:, redone.names.index(n)] for n in anim.names]),
+                               anim.weights, atol=1e-5)
     assert len(json.loads((out / "correspondence.json").read_text())["landmarks"]) > 50
     # edited files go back in: the same keys and correspondence give the same map
     again = tmp_path / "again"

@@ -394,5 +394,6 @@ def test_score_route_uses_the_trackers_scores_at_the_keys():
     geometric = propose_mapping(keys, rig, correspondence=corr)  # no scores: the landmark fit, no offset
     assert not geometric.offset.any() and (geometric.matrix >= 0).all()
     auto = auto_targets(keys, rig, correspondence=corr, route="mapping", scores=scores)
-    np.testing.assert_allclose(auto.mapping.offset, [0.6, 0.5, 0.0, 0.0])  # gaze has its own channel
+    np.testing.assert_allclose(auto.mapping.offset, [0.6, 0.5, 0.0, 0.0])  # gaze has its own channel:
     np.testing.assert_allclose(auto.mapping.matrix, mapping.matrix)
+    assert auto.mapping.gaze == (("eyeLookUp_L", "eyeLookUpLeft", 0.0),)  # its score, frame by frame

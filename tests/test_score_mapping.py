@@ -53,27 +53,54 @@ def test_frames_without_a_face_are_left_out():
     assert np.isfinite(mapping.matrix).all() and np.abs(mapping.matrix - gains).max() < 0.06
 
 
-def test_gaze_follows_its_scores_frame_by_frame():
+def test_gaze_follows_its_scores_frame_by_frame(tmp_path):
     """Gaze on its own channel: each gaze target follows its score less the character's rest
     reading; the keys (expressions) cannot carry a look that is independent of them."""
-    from keyshape.targets import gaze_from_scores
+    from keyshape.containers import Weights
+    from keyshape.targets import Mapping, drive_gaze, gaze_channels, retarget
 
     keys, rig, own, gains, offset, weights, truth, scores = _setup(seed=2)
     rng = np.random.default_rng(3)
     look = np.clip(0.5 + 0.4 * np.sin(np.arange(len(weights)) / 9.0), 0, 1)  # a slow look, not an expression
     names = ("eyeLookInLeft", "eyeLookOutRight", "jawOpen")
-    rest = {"eyeLookInLeft": 0.1, "eyeLookOutRight": 0.05}
+    rest = {"eyeLookInLeft": 0.1, "eyeLookOutRight": 0.05, "jawOpen": 0.2}
     read = np.column_stack([look + 0.1, look + 0.05, rng.uniform(size=len(look))])
     read[[0, 7, 8]] = np.nan  # frames without a face; the first is held from the next
     rig_names = ("jawOpen", "eyeLookIn_L", "eyeLookOut_R", "eyeLookIn_R")
-    columns, values = gaze_from_scores(read, names, rig_names, rest=rest)
-    assert list(columns) == [1, 2]  # gaze targets some score names; jawOpen is not gaze
+    entries = gaze_channels(names, rig_names, rest=rest)
+    assert entries == (("eyeLookIn_L", "eyeLookInLeft", 0.1), ("eyeLookOut_R", "eyeLookOutRight", 0.05))
+    mapping = Mapping(np.array([[1.0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]]), keys.names, rig_names,
+                      gaze=entries)
+    again = Mapping.from_file(mapping.save(tmp_path / "map.json"), targets=rig_names)  # the file keeps them
+    assert again.gaze == entries
+    anim = drive_gaze(retarget(Weights(weights, keys.names, 30.0), again), again, read, names)
     expected = np.column_stack([look, look])
     expected[[7, 8]] = (2 * expected[6] + expected[9]) / 3, (expected[6] + 2 * expected[9]) / 3
     expected[0] = expected[1]
-    np.testing.assert_allclose(values, expected, atol=1e-12)
+    np.testing.assert_allclose(anim.values[:, [1, 2]], expected, atol=1e-12)
+    np.testing.assert_allclose(anim.values[:, 0], weights[:, 0])  # the keys' targets as retarget made them
+    assert not anim.values[:, 3].any()  # no score names it
     # the same look read through the key weights (what a key mapping can do) is nearly flat
     bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=np.column_stack([look] * 6), weights=weights)
     through_keys = _take_mapping(keys, rig, np.eye(6), own, bundle, np.zeros(6))
     fitted = through_keys.offset[0] + weights @ through_keys.matrix[0]
-    assert np.abs(fitted - look).mean() > 10 * np.abs(values[1:, 0] - look[1:]).mean() + 0.1
+    assert np.abs(fitted - look).mean() > 10 * np.abs(expected[1:, 0] - look[1:]).mean() + 0.1
+
+
+def test_gaze_entries_are_checked(tmp_path):
+    import json
+
+    import pytest
+
+    from keyshape.exceptions import InputError, RigError
+    from keyshape.targets import Mapping
+
+    with pytest.raises(InputError, match="no key gain or offset"):
+        Mapping(np.ones((1, 1)), ("k",), ("eyeLookIn_L",), gaze=(("eyeLookIn_L", "eyeLookInLeft", 0.1),))
+    with pytest.raises(RigError, match="gaze targets the rig does not have"):
+        Mapping(np.zeros((1, 1)), ("k",), ("jawOpen",), gaze=(("eyeLookIn_L", "eyeLookInLeft", 0.1),))
+    bad = tmp_path / "map.json"
+    bad.write_text(json.dumps({"format": "keyshape-map", "version": 1, "gains": {"k": {"jawOpen": 1.0}},
+                               "gaze": {"eyeLookIn_L": {"score": "eyeLookInLeft", "rest": 1.5}}}))
+    with pytest.raises(InputError, match=r"map\.json: .*rest must be in \[0, 1\]"):
+        Mapping.from_file(bad, targets=("jawOpen", "eyeLookIn_L"))

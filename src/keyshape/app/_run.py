@@ -170,20 +170,20 @@ def _error_pct(solved, keys: KeyShapes) -> float:
 
 
 def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, options,
-                   keep_file: bool = True, remade: bool = False, gaze_rest: dict | None = None) -> None:
-    """Write the run's files into ``stage``; ``gaze_rest``: the mapping route's reading of the
-    character at rest (``{}`` when unknown), its gaze targets then driven by the gaze scores."""
+                   keep_file: bool = True, remade: bool = False) -> None:
     from ..io import export
     from ..io.keys_json import save_keys
     from ..io.take import save_take_info
     from ..io.track import save_track
     from ..io.weights_csv import save_weights_csv
-    from ..targets import retarget
+    from ..targets import drive_gaze, retarget
 
     save_track(track, stage / "track.npz")
     save_keys(keys, stage / "keys.json")
     save_weights_csv(solved.weights, stage / "weights.csv")
     anim = retarget(solved.weights, mapping)
+    if mapping.gaze and track.blendshapes is not None:  # gaze on its own channel (map.json's "gaze")
+        anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)
     source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
     if source is not None and remade:  # mirrored keys' targets made: the file gets them
@@ -196,8 +196,6 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
         anim, colours = default_character_extras(anim, solved.gaze)
     elif options.mapping is None and not options.auto_targets:  # a rig's own ARKit gaze targets: the irises
         anim = drive_gaze_targets(anim, solved.gaze, taken=keys.names)
-    elif gaze_rest is not None and not _turns_eye_nodes(source):  # --auto-targets: gaze on its own channel
-        anim = drive_gaze_scores(anim, track, gaze_rest)
     export(anim, stage / "animation.glb", rig=rig, poses=solved.poses, source=source, eyes=eyes, colours=colours)
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
@@ -229,33 +227,6 @@ def drive_gaze_targets(anim, gaze, taken=()):
     for name in free:
         values[:, anim.names.index(name)] = driven[:, GAZE_NAMES.index(name)]
     return dataclasses.replace(anim, values=values)
-
-
-def drive_gaze_scores(anim, track, rest: dict):
-    """``anim`` with the rig's gaze targets (``eyeLookIn_L`` ...) following the track's gaze scores
-    frame by frame, less the character's own reading at rest
-    (:func:`keyshape.targets.gaze_from_scores`); unchanged without scores."""
-    import dataclasses
-
-    from ..targets import gaze_from_scores
-
-    if track.blendshapes is None or len(track.blendshapes) != len(anim.values):
-        return anim
-    columns, driven = gaze_from_scores(track.blendshapes, track.blendshape_names, anim.names, rest=rest)
-    if not len(columns):
-        return anim
-    values = np.array(anim.values, dtype=float)
-    values[:, columns] = driven
-    return dataclasses.replace(anim, values=values)
-
-
-def _turns_eye_nodes(source) -> bool:
-    """Whether the written file turns the eyes by their own nodes (a glTF rig that has them)."""
-    if source is None:
-        return False
-    from ..io.gltf import eye_nodes
-
-    return eye_nodes(source) is not None
 
 
 def default_character_extras(anim, gaze):
@@ -307,10 +278,7 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
                         same_take=options.keys is None and not isinstance(options.neutral, Path))  # reused keys too
     rig, mapping, keep_file, auto, remade = _rig_and_mapping(options, keys, scores, loaded_rig)
     with staged_folder(outdir, owned=_run_owned) as stage:  # stale outputs of an earlier run go
-        gaze_rest = None
-        if auto is not None and auto.route == "mapping":
-            gaze_rest = auto.correspondence.rest_scores or {}
-        _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file, remade, gaze_rest)
+        _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file, remade)
         if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
             auto.correspondence.save(stage / "correspondence.json")
             if auto.route == "mapping":

@@ -40,7 +40,8 @@ def add_arguments(p) -> None:
                    help="key -> targets gains (JSON); default: each key drives the target of its name")
     p.add_argument("--track", type=Path, default=None,
                    help="track file: also animate the head rotation (and the eyes, where the rig "
-                        "has eye nodes, and in Live Link Face CSV)")
+                        "has eye nodes, and in Live Link Face CSV); its gaze scores drive the gaze "
+                        "targets of a MAP.json with a \"gaze\" section (what run --auto-targets writes)")
     p.add_argument("--allow-extra", action="store_true",
                    help="without --map: let rig targets that no key drives stay at 0 (default: an error "
                         "listing them; ARKit gaze targets, eyeLook*, are always let through and, with "
@@ -73,12 +74,17 @@ def run(args) -> None:
 
         rig, made = complete_mirrors(rig, mirror_sources(weights.names))
     gaze_only = _free_gaze_targets(args, weights, rig)
-    anim = retarget(weights, _mapping(args, weights, rig, allow_gaze=bool(gaze_only)))
-    poses, gaze = _poses(args, weights)
+    mapping = _mapping(args, weights, rig, allow_gaze=bool(gaze_only))
+    anim = retarget(weights, mapping)
+    poses, gaze, scores = _poses(args, weights)
     if gaze_only and gaze is not None:  # e.g. a take's own animation.glb: its eyes follow the irises
         from ..app import drive_gaze_targets
 
         anim = drive_gaze_targets(anim, gaze, taken=weights.names)
+    if mapping.gaze and scores is not None:  # MAP.json's gaze targets follow the track's gaze scores
+        from ..targets import drive_gaze
+
+        anim = drive_gaze(anim, mapping, *scores)
     eyes = gaze.rotations() if gaze is not None else None
     source = args.rig if rig is not None and args.rig.is_file() and args.rig.suffix.lower() != ".obj" else None
     with tempfile.TemporaryDirectory(prefix="keyshape-retarget-") as scratch:
@@ -96,6 +102,9 @@ def run(args) -> None:
     if gaze_only and gaze is None and not args.quiet:
         print(f"gaze targets no key drives stay at rest ({', '.join(gaze_only)}): give --track to turn "
               "them with the irises")
+    if mapping.gaze and scores is None and not args.quiet:
+        print(f"{args.map}: its gaze targets follow the tracker's gaze scores; without --track (with scores) "
+              f"they stay at rest ({', '.join(t for t, _, _ in mapping.gaze)})")
 
 
 def _rig(args, formats, Format):
@@ -128,9 +137,9 @@ def _free_gaze_targets(args, weights, rig) -> list[str]:
 
 
 def _poses(args, weights):
-    """(head poses, gaze) from --track, or (None, None)."""
+    """(head poses, gaze, (scores, score names) or None) from --track, or (None, None, None)."""
     if args.track is None:
-        return None, None
+        return None, None, None
     from ..app import head_and_gaze
     from ..io.track import load_track
 
@@ -142,7 +151,8 @@ def _poses(args, weights):
         i = int(differ[0])
         raise InputError(f"{args.weights}: row {i} is frame {weights.frame_index[i]} but row {i} of {args.track} "
                          f"is frame {track.frame_index[i]}: give the track the weights were solved from")
-    return head_and_gaze(track)
+    scores = (track.blendshapes, track.blendshape_names) if track.blendshapes is not None else None
+    return (*head_and_gaze(track), scores)
 
 
 def _summary(out, chosen, anim, Format) -> str:

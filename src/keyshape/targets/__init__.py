@@ -1,6 +1,7 @@
 """Stage 5, retarget: from key weights to a character's targets.
 
-* :class:`Mapping` and :func:`retarget` — key → target gains, by name or from ``MAP.json``;
+* :class:`Mapping` and :func:`retarget` — key → target gains, by name or from ``MAP.json``, and
+  :func:`drive_gaze` — its gaze targets following the tracker's gaze scores;
 * :func:`auto_targets`, :func:`propose_targets`, :func:`propose_mapping` — no sculpting: the
   character's version of every key shape (expression transfer), or a key → blendshape mapping
   for a rig with shapes of its own;
@@ -15,14 +16,14 @@
 from ._character import GAZE_NAMES, Character, canonical_face, gaze_weights, stylised_head, with_gaze_targets
 from ._correspond import Correspondence, correspondence_from_dict, read_correspondence
 from ._correspond_auto import find_correspondence
-from ._mapping import Mapping, retarget
+from ._mapping import Mapping, drive_gaze, retarget
 from ._mirrored import complete_mirrors, mirror_sources
 from ._propose import (
     AutoTargets,
     KeyScores,
     auto_targets,
     default_character,
-    gaze_from_scores,
+    gaze_channels,
     propose_mapping,
     propose_targets,
     proposer,
@@ -30,8 +31,8 @@ from ._propose import (
 )
 from ._transfer import LandmarkMotion, feature_groups, landmark_motion, spread, transfer_expressions
 
-__all__ = ["Mapping", "retarget", "complete_mirrors", "mirror_sources",
-           "AutoTargets", "KeyScores", "auto_targets", "gaze_from_scores", "propose_targets", "propose_mapping", "proposer",
+__all__ = ["Mapping", "retarget", "drive_gaze", "complete_mirrors", "mirror_sources",
+           "AutoTargets", "KeyScores", "auto_targets", "gaze_channels", "propose_targets", "propose_mapping", "proposer",
            "resolve_correspondence",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
            "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",

@@ -12,7 +12,10 @@ A mapping file (``--map MAP.json``) is JSON: ``{key: {target: gain, ...}, ...}``
 ``{"lower_03": {"jawOpen": 0.8, "mouthFunnel": 0.3}}``; the same object may be wrapped as
 ``{"format": "keyshape-map", "version": 1, "gains": {...}}`` (what :meth:`Mapping.save`
 writes), or given as a matrix: ``{"keys": [...], "targets": [...], "matrix": [[...], ...]}``
-with one row per target. The wrapped form may carry ``"offset": {target: value, ...}``.
+with one row per target. The wrapped form may carry ``"offset": {target: value, ...}`` and
+``"gaze": {target: {"score": name, "rest": value}, ...}``: targets driven frame by frame by the
+tracker's score of that name less ``rest`` (gaze on its own channel, not through the keys; see
+:func:`drive_gaze`).
 
 Retargeting carries weights only: it assumes nothing about the rig's scale, orientation or
 topology. The targets themselves say how far each vertex moves at weight 1; a key's gain scales
@@ -31,7 +34,7 @@ import numpy as np
 from ..containers import Weights
 from ..exceptions import InputError, RigError
 
-__all__ = ["Mapping", "retarget"]
+__all__ = ["Mapping", "retarget", "drive_gaze"]
 
 
 def _names(source) -> tuple[str, ...]:
@@ -56,6 +59,9 @@ class Mapping:
         Rig target names (the rows).
     offset : (n_targets,) float, ≥ 0
         Target weights when every key weight is 0 (the key set's neutral); zeros by default.
+    gaze : tuple of (target, score, rest)
+        Targets that follow a tracker score frame by frame instead of the keys (their rows and
+        offsets are zero): ``w = clip(score − rest, 0, 1)`` (:func:`drive_gaze`); empty by default.
 
     Examples
     --------
@@ -69,6 +75,7 @@ class Mapping:
     sources: tuple[str, ...]
     targets: tuple[str, ...]
     offset: np.ndarray | None = None
+    gaze: tuple = ()
 
     def __post_init__(self):
         sources, targets = _names(self.sources), _names(self.targets)
@@ -88,6 +95,11 @@ class Mapping:
             duplicates = sorted({n for n in names if names.count(n) > 1})
             if duplicates:
                 raise InputError(f"{label} names must be unique; repeated: {duplicates}")
+        gaze = _gaze_entries(self.gaze, targets)
+        driven = [targets.index(t) for t, _, _ in gaze]
+        if driven and (matrix[driven].any() or offset[driven].any()):
+            raise InputError(f"gaze targets {[t for t, _, _ in gaze]} follow their scores: no key gain or offset on them")
+        object.__setattr__(self, "gaze", gaze)
         matrix, offset = matrix.copy(), offset.copy()
         matrix.flags.writeable = offset.flags.writeable = False
         object.__setattr__(self, "matrix", matrix)
@@ -131,7 +143,8 @@ class Mapping:
         return cls(matrix, keys, targets)
 
     @classmethod
-    def from_dict(cls, gains: dict, *, targets=None, sources=None, offset: dict | None = None) -> Mapping:
+    def from_dict(cls, gains: dict, *, targets=None, sources=None, offset: dict | None = None,
+                  gaze: dict | None = None) -> Mapping:
         """A mapping from ``{key: {target: gain, ...}, ...}``.
 
         Parameters
@@ -147,6 +160,8 @@ class Mapping:
         offset : dict of str -> float, optional, keyword-only
             Target weights at the neutral (see :class:`Mapping`); a gain may then be as low as
             ``-offset[target]``.
+        gaze : dict of str -> {"score": str, "rest": float}, optional, keyword-only
+            Targets driven by a tracker score frame by frame (see :class:`Mapping`).
 
         Returns
         -------
@@ -168,7 +183,9 @@ class Mapping:
         if unknown_keys:
             raise InputError(f"gains name keys {unknown_keys} not among the sources {list(sources)}")
         offset = {str(t): _gain(v, "offset", str(t), 0.0) for t, v in (offset or {}).items()}
-        mentioned = list(dict.fromkeys([*(str(t) for row in gains.values() for t in row), *offset]))
+        gaze = _parse_gaze(gaze)
+        mentioned = list(dict.fromkeys([*(str(t) for row in gains.values() for t in row), *offset,
+                                        *(t for t, _, _ in gaze)]))
         rows = mentioned if targets is None else _names(targets)
         unknown = [t for t in mentioned if t not in rows]
         if unknown:
@@ -178,7 +195,7 @@ class Mapping:
             k = sources.index(str(key))
             for target, gain in row.items():
                 matrix[rows.index(str(target)), k] = _gain(gain, str(key), target, offset.get(str(target), 0.0))
-        return cls(matrix, sources, rows, np.array([offset.get(t, 0.0) for t in rows]))
+        return cls(matrix, sources, rows, np.array([offset.get(t, 0.0) for t in rows]), gaze)
 
     @classmethod
     def from_file(cls, path, *, targets=None) -> Mapping:
@@ -224,7 +241,7 @@ class Mapping:
             offset = data.get("offset") if wrapped else None
             if offset is not None and not isinstance(offset, dict):
                 raise InputError(f'"offset" must be an object {{target: weight, ...}}; got {offset!r}')
-            return cls.from_dict(gains, targets=targets, offset=offset)
+            return cls.from_dict(gains, targets=targets, offset=offset, gaze=data.get("gaze") if wrapped else None)
         except (InputError, RigError) as error:
             raise type(error)(f"{path}: {error}") from None
 
@@ -246,6 +263,8 @@ class Mapping:
         document = {"format": MAP_FORMAT, "version": 1, "gains": self.to_dict()}
         if self.offset.any():
             document["offset"] = {t: float(c) for t, c in zip(self.targets, self.offset) if c != 0}
+        if self.gaze:
+            document["gaze"] = {t: {"score": score, "rest": rest} for t, score, rest in self.gaze}
         text = json.dumps(document, indent=1)
         with atomic_path(path) as tmp:
             tmp.write_text(text + "\n", encoding="utf-8")
@@ -302,6 +321,81 @@ def _gain(value, key: str, target: str, offset: float = 0.0) -> float:
         floor = f"-{offset:g} (its offset)" if offset else "0"
         raise InputError(f"gain for key {key!r} -> target {target!r} must be finite and >= {floor}; got {value!r}")
     return gain
+
+
+def _parse_gaze(gaze) -> tuple:
+    """``{target: {"score": str, "rest": float}}`` (a file's ``"gaze"``) as (target, score, rest) entries."""
+    if gaze is None:
+        return ()
+    if not isinstance(gaze, dict):
+        raise InputError(f'"gaze" must be an object {{target: {{"score": name, "rest": value}}, ...}}; got {gaze!r}')
+    entries = []
+    for target, entry in gaze.items():
+        if not isinstance(entry, dict) or not isinstance(entry.get("score"), str):
+            raise InputError(f'gaze target {target!r} needs {{"score": name, "rest": value}}; got {entry!r}')
+        entries.append((str(target), entry["score"], entry.get("rest", 0.0)))
+    return tuple(entries)
+
+
+def _gaze_entries(gaze, targets: tuple) -> tuple:
+    """Checked (target, score, rest) entries: known, unique targets; ``rest`` a number in [0, 1]."""
+    out = []
+    for entry in gaze:
+        try:
+            target, score, rest = entry
+            rest = float(rest)
+        except (TypeError, ValueError):
+            raise InputError(f"gaze entries must be (target, score, rest); got {entry!r}") from None
+        if str(target) not in targets:
+            raise RigError(f"mapping names gaze targets the rig does not have: {target!r}; rig targets: {list(targets)}")
+        if not (np.isfinite(rest) and 0 <= rest <= 1) or not str(score):
+            raise InputError(f"gaze target {target!r}: rest must be in [0, 1] and score a name; got {entry!r}")
+        out.append((str(target), str(score), rest))
+    repeated = sorted({t for t, _, _ in out if [u for u, _, _ in out].count(t) > 1})
+    if repeated:
+        raise InputError(f"gaze targets must be unique; repeated: {repeated}")
+    return tuple(out)
+
+
+def drive_gaze(anim: Weights, mapping: Mapping, scores, score_names) -> Weights:
+    """``anim`` (``retarget``'s output) with the mapping's gaze targets following their scores.
+
+    Each entry ``(target, score, rest)`` of ``mapping.gaze`` sets ``anim``'s ``target`` column to
+    ``clip(s(f) − rest, 0, 1)``, ``s`` the tracker's score of that name per frame; frames without a
+    face (NaN) are filled linearly from their neighbours and held at the ends. Targets whose score
+    the tracker does not give stay as they are.
+
+    Parameters
+    ----------
+    anim : Weights, ``(n_frames, n_targets)`` named ``mapping.targets`` (at least)
+    mapping : Mapping
+    scores : (n_frames, n_scores) float, NaN where no face
+    score_names : sequence of n_scores str
+
+    Returns
+    -------
+    Weights
+
+    Raises
+    ------
+    InputError
+        ``scores`` has another number of frames than ``anim``.
+    """
+    if not mapping.gaze:
+        return anim
+    scores = np.asarray(scores, dtype=float)
+    if scores.ndim != 2 or len(scores) != anim.n_frames:
+        raise InputError(f"the gaze scores must have one row per frame ({anim.n_frames}); got {scores.shape}")
+    names = [str(n) for n in score_names]
+    values = np.array(anim.values, dtype=float)
+    frames = np.arange(len(scores))
+    for target, score, rest in mapping.gaze:
+        if score not in names or target not in anim.names:
+            continue
+        column = np.clip(scores[:, names.index(score)] - rest, 0, 1)
+        found = np.isfinite(column)
+        values[:, anim.names.index(target)] = np.interp(frames, frames[found], column[found]) if found.any() else 0.0
+    return anim.with_values(values, anim.names)
 
 
 def retarget(weights: Weights, mapping: Mapping) -> Weights:

@@ -32,6 +32,7 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +49,7 @@ from ._head_parts import JAW_LANDMARKS, jaw_deltas
 from ._mapping import Mapping
 from ._transfer import landmark_motion, spread, transfer_expressions
 
-__all__ = ["AutoTargets", "KeyScores", "auto_targets", "default_character", "gaze_from_scores", "propose_mapping",
+__all__ = ["AutoTargets", "KeyScores", "auto_targets", "default_character", "gaze_channels", "propose_mapping",
            "propose_targets", "proposer", "resolve_correspondence"]
 
 Route = Literal["auto", "transfer", "mapping"]
@@ -284,45 +285,36 @@ def propose_mapping(keys: KeyShapes, rig, *, correspondence=None, ridge: float =
     return Mapping(gains, keys.names, rig.names)
 
 
-def gaze_from_scores(scores: np.ndarray, score_names, rig_names, *, rest: dict | None = None,
-                     patterns: Sequence[str] = GAZE_TARGETS) -> tuple[np.ndarray, np.ndarray]:
-    """A rig's gaze targets driven frame by frame by the tracker's gaze scores, on their own channel.
+def gaze_channels(score_names, rig_names, *, rest: dict | None = None,
+                  patterns: Sequence[str] = GAZE_TARGETS) -> tuple:
+    """A rig's gaze targets on their own channel: ``(target, score, rest)`` entries of a :class:`Mapping`.
 
     Gaze is not an expression: the eyes turn whatever the face does, and the key shapes (made of
     the face's landmarks, not the irises) cannot carry it, so a key → target mapping can only give
     gaze targets a constant. Each gaze target (``eyeLookIn_L`` ...) instead follows its ARKit score
     (``eyeLookInLeft``) frame by frame, less the tracker's reading of the character itself at rest
-    (``rest``, :attr:`Correspondence.rest_scores`), clipped to [0, 1]; frames without a face are
-    filled linearly from their neighbours (held at the ends).
+    (``rest``, :attr:`Correspondence.rest_scores`); :func:`~keyshape.targets._mapping.drive_gaze`
+    applies them.
 
     Parameters
     ----------
-    scores : (n_frames, n_scores) float, NaN where no face
-    score_names : sequence of n_scores str (ARKit names)
-    rig_names : sequence of n_targets str
+    score_names : sequence of str (ARKit names)
+    rig_names : sequence of str
     rest : dict str -> float or None, keyword-only
     patterns : target-name patterns (``fnmatch``, case-insensitive) that are gaze, keyword-only
 
     Returns
     -------
-    columns : (n_driven,) int
-        The rig targets driven (gaze targets that some score names).
-    values : (n_frames, n_driven) float in [0, 1]
+    tuple of (target, score, rest)
+        One per gaze target that a score names (an unsided score would drive both halves).
     """
-    scores = np.asarray(scores, dtype=float)
     table = _score_channels(score_names, rig_names) * _excluded(rig_names, patterns)[:, None]
-    columns = np.flatnonzero(table.any(axis=1))
-    if rest:
-        at_rest = np.array([float(rest.get(n, 0.0)) for n in score_names])
-        scores = scores - at_rest
-    values = np.clip(scores @ table[columns].T, 0, 1)  # NaN rows stay NaN
-    found = np.isfinite(values).all(axis=1)
-    if not found.any():
-        return columns, np.zeros_like(values)
-    frames = np.arange(len(values))
-    filled = np.column_stack([np.interp(frames, frames[found], v[found]) for v in values.T]) if len(columns) \
-        else values
-    return columns, filled.reshape(len(values), len(columns))
+    rest = rest or {}
+    entries = []
+    for t in np.flatnonzero(table.any(axis=1)):
+        score = str(score_names[int(np.flatnonzero(table[t])[0])])
+        entries.append((str(rig_names[t]), score, float(np.clip(rest.get(score, 0.0), 0, 1))))
+    return tuple(entries)
 
 
 def _score_channels(score_names, rig_names) -> np.ndarray:
@@ -545,8 +537,9 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         materials (:func:`keyshape.io.gltf.read_colours`), else clay.
     scores : KeyScores or None, keyword-only
         Mapping route: the tracker's ARKit scores at the key frames (see :func:`propose_mapping`).
-        Gaze targets (``eyeLook*``) are never mapped from keys: ``keyshape run`` drives them frame
-        by frame (:func:`gaze_from_scores`), or turns the eyes' own nodes of a glTF file that has them.
+        Gaze targets (``eyeLook*``) are never mapped from keys: the mapping's ``gaze`` entries
+        (:func:`gaze_channels`) drive them frame by frame from their scores, unless the rig is a
+        glTF file whose eyes turn by their own nodes (then the gaze from the irises turns those).
 
     Returns
     -------
@@ -564,14 +557,27 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
     character, corr, rigid = _character(keys, rig, correspondence, unit, front, colours)
     if route == "mapping" or (route == "auto" and character.n_targets > 0):
-        # gaze targets are not mapped from keys: they have their own channel (gaze_from_scores)
+        # gaze targets are not mapped from keys: they follow their scores (gaze_channels), or the
+        # irises turn the eyes' own nodes of a glTF rig that has them
         mapping = propose_mapping(keys, character, correspondence=corr, normalize=normalize, scores=scores)
+        if scores is not None and not _eyes_on_nodes(rig):
+            mapping = dataclasses.replace(mapping, gaze=gaze_channels(scores.names, character.names,
+                                                                      rest=corr.rest_scores))
         return AutoTargets(character, mapping, "mapping", corr)
     if rig is None and correspondence is None and falloff == 1.0:
         proposed = default_character(keys)  # with its mouth interior following the jaw
     else:
         proposed = propose_targets(keys, character, correspondence=corr, rigid=rigid, falloff=falloff)
     return AutoTargets(proposed, Mapping.by_name(keys.names, proposed.names), "transfer", corr)
+
+
+def _eyes_on_nodes(rig) -> bool:
+    """Whether the rig is a glTF file whose eyes the writer turns by their nodes (with the gaze)."""
+    if isinstance(rig, (str, Path)) and Path(rig).suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import eye_nodes
+
+        return eye_nodes(rig) is not None
+    return False
 
 
 def _character(keys: KeyShapes, rig, correspondence, unit: float, front: str,
