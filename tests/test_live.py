@@ -356,7 +356,9 @@ def test_live_link_from_the_command_line(demo_clip, clip_keys, tmp_path):
 
     keys = load_keys(clip_keys)
     lower = next(k for k in keys.names if k.startswith("lower"))
-    (tmp_path / "map.json").write_text(json.dumps({lower: {"jawOpen": 0.5}, keys.names[0]: {"browInnerUp": 1.0}}))
+    (tmp_path / "map.json").write_text(json.dumps(  # with a gaze target on its own channel (--auto-targets')
+        {"format": "keyshape-map", "version": 1, "gains": {lower: {"jawOpen": 0.5}, keys.names[0]: {"browInnerUp": 1.0}},
+         "gaze": {"eyeLookOutLeft": {"score": "eyeLookOutLeft", "rest": 0.02}}}))
     receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     receiver.bind(("127.0.0.1", 0))
     receiver.settimeout(0.5)
@@ -389,7 +391,9 @@ def test_live_link_from_the_command_line(demo_clip, clip_keys, tmp_path):
     jaw, brow = PACKET_NAMES.index("JawOpen"), PACKET_NAMES.index("BrowInnerUp")
     assert ((values[:, :52] >= 0) & (values[:, :52] <= 1)).all() and values[:, jaw].max() <= 0.5 + 1e-6
     assert np.ptp(values[:, jaw]) > 0.01 or np.ptp(values[:, brow]) > 0.01  # the face moves
-    unmapped = [i for i in range(52) if i not in (jaw, brow)]
+    look = PACKET_NAMES.index("EyeLookOutLeft")
+    assert np.ptp(values[:, look]) > 0.01  # the gaze target follows the frame's own score
+    unmapped = [i for i in range(52) if i not in (jaw, brow, look)]
     assert (values[:, unmapped] == 0).all() and np.ptp(values[:, 52]) > 0.001  # head yaw turns
 
 
@@ -576,3 +580,19 @@ def test_recording_keeps_the_whole_frames_when_a_signal_stops_a_write(tmp_path):
     assert load_track(tmp_path / "rec" / "track.npz").n_frames == 4
     assert len(load_weights_csv(tmp_path / "rec" / "weights.csv").values) == 4
     assert not list((tmp_path / "rec").glob(".live-spool-*"))
+
+
+def test_a_maps_gaze_targets_follow_each_frames_scores():
+    """MAP.json's "gaze" live: the frame's score less its rest, clipped; no face holds the last value."""
+    from types import SimpleNamespace
+
+    from keyshape.live._loop import _Gaze
+    from keyshape.targets import Mapping
+
+    mapping = Mapping(np.array([[1.0], [0.0], [0.0]]), ("k",), ("jawOpen", "eyeLookIn_L", "eyeLookUp_R"),
+                      gaze=(("eyeLookIn_L", "eyeLookInLeft", 0.1), ("eyeLookUp_R", "eyeLookUpRight", 0.5)))
+    gaze = _Gaze(mapping, ("_neutral", "eyeLookInLeft", "eyeLookUpRight"))
+    gaze.chosen = SimpleNamespace(scores=np.array([0.0, 0.6, 0.2]))
+    np.testing.assert_allclose(gaze(np.array([0.3, 0.0, 0.0])), [0.3, 0.5, 0.0])
+    gaze.chosen = None  # no face
+    np.testing.assert_allclose(gaze(np.array([0.0, 0.0, 0.0])), [0.0, 0.5, 0.0])

@@ -176,3 +176,39 @@ def test_the_live_page_draws_the_builtin_head_in_colour_with_its_eyes_turned(per
         assert still["weights"][keys.n_keys:] == [0.0] * len(GAZE_NAMES)
     finally:
         view.close()
+
+
+def test_a_recording_drives_a_maps_gaze_targets_from_the_recorded_scores(tmp_path, perf):
+    """MAP.json's "gaze" section in a recording's animation.glb, as `keyshape run` writes it."""
+    from keyshape.capture.mediapipe import BLENDSHAPE_NAMES
+    from keyshape.containers import Rig
+    from keyshape.io.gltf import read_glb_animation
+    from keyshape.targets import Mapping
+
+    keys = _keys(perf)
+    rng = np.random.default_rng(2)
+    base = rng.normal(size=(30, 3))
+    names = (*keys.names, "eyeLookIn_L")
+    rig = Rig(base, [[0, 1, 2]], 0.01 * rng.normal(size=(len(names), 30, 3)), names)
+    mapping = Mapping(np.vstack([np.eye(keys.n_keys), np.zeros((1, keys.n_keys))]), keys.names, names,
+                      gaze=(("eyeLookIn_L", "eyeLookInLeft", 0.1),))
+    look = np.linspace(0.0, 0.9, perf.track.n_frames)
+    column = list(BLENDSHAPE_NAMES).index("eyeLookInLeft")
+
+    def frames():
+        for frame in _frames(perf, keys, cover=False):
+            scores = np.zeros(len(BLENDSHAPE_NAMES))
+            scores[column] = look[frame.index]
+            yield _with_detection(frame, scores)
+
+    _record(tmp_path / "rec", perf, frames(), rig=rig, mapping=mapping, blendshape_names=tuple(BLENDSHAPE_NAMES))
+    animation = read_glb_animation(tmp_path / "rec" / "animation.glb")
+    np.testing.assert_allclose(animation.weights[:, animation.names.index("eyeLookIn_L")],
+                               np.clip(look - 0.1, 0, 1), atol=1e-6)
+
+
+def _with_detection(frame, scores):
+    import dataclasses
+
+    return dataclasses.replace(frame, detection=SimpleNamespace(points=frame.detection.points, scores=scores,
+                                                                matrix=np.eye(4)))

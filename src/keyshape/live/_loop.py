@@ -130,13 +130,37 @@ def _replay_calibration(seen, outputs, keys: KeyShapes) -> None:
             output.calibration([(frame.index, chosen) for frame, chosen in seen], nothing)
 
 
-def _values(solve, mapping, names, fps) -> np.ndarray:
+def _values(solve, mapping, names, fps, gaze=None) -> np.ndarray:
+    """The frame's target values: the key weights through ``mapping``, its gaze targets from the
+    frame's scores (``gaze``: a :class:`_Gaze`, None without a ``"gaze"`` section)."""
     keyed = np.nan_to_num(solve.keys, nan=0.0)
     if mapping is None:
         return keyed
     from ..targets import retarget
 
-    return retarget(Weights(keyed[None], names, fps), mapping).values[0]
+    values = np.array(retarget(Weights(keyed[None], names, fps), mapping).values[0])
+    return gaze(values) if gaze is not None else values
+
+
+class _Gaze:
+    """A mapping's gaze targets (MAP.json's ``"gaze"``) driven by each frame's tracker scores, as
+    :func:`keyshape.targets.drive_gaze` does offline: ``clip(score − rest, 0, 1)``; a frame without
+    a face holds the last value (offline, the gap is filled from both sides)."""
+
+    def __init__(self, mapping, score_names):
+        names = list(score_names)
+        entries = [(mapping.targets.index(t), names.index(s), r) for t, s, r in mapping.gaze if s in names]
+        self.columns = np.array([c for c, _, _ in entries], dtype=int)
+        self.scores = np.array([j for _, j, _ in entries], dtype=int)
+        self.rest = np.array([r for _, _, r in entries], dtype=float)
+        self.last = np.zeros(len(entries))
+        self.chosen = None  # the frame's detection, set before each call
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        if self.chosen is not None and len(self.columns):
+            self.last = np.clip(np.asarray(self.chosen.scores, dtype=float)[self.scores] - self.rest, 0, 1)
+        values[self.columns] = self.last
+        return values
 
 
 def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys: KeyShapes | None = None,
@@ -203,6 +227,7 @@ class _Run:
         self.latency, self.detect = [], []
         self.base = (0, 0)  # the mailbox's (delivered, dropped) when the session started
         self.solver: LiveSolver | None = None
+        self.gaze: _Gaze | None = None
         self.start = time.perf_counter()
 
     def loop(self, mailbox: Mailbox, tracker: _Tracker, solver: LiveSolver, session: Session,
@@ -231,13 +256,23 @@ class _Run:
         solve = solver.step(chosen.points if chosen is not None else None)
         keys = solver.keys
         names = session.mapping.targets if session.mapping is not None else keys.names
+        gaze = self._gaze(session.mapping, tracker, chosen)
         live = LiveFrame(frame.index, frame.time, frame.arrival, tuple(names),
-                         _values(solve, session.mapping, keys.names, self.source.fps), solve.keys,
+                         _values(solve, session.mapping, keys.names, self.source.fps, gaze), solve.keys,
                          solve.head, solve.eyes, solve.face, frame.rgb, chosen)
         for output in self.outputs:
             output.send(live)
         self.latency.append(time.perf_counter() - frame.arrival)
         self.summary.faces += solve.face
+
+    def _gaze(self, mapping, tracker: _Tracker, chosen):
+        """The :class:`_Gaze` of ``mapping`` (made once the tracker knows its score names), or None."""
+        if mapping is None or not mapping.gaze or not tracker.tracker.blendshape_names:
+            return None
+        if self.gaze is None:
+            self.gaze = _Gaze(mapping, tracker.tracker.blendshape_names)
+        self.gaze.chosen = chosen
+        return self.gaze
 
     def finish(self) -> None:
         """Stop the source, close every output (a recording is written now), fill in the summary."""

@@ -172,7 +172,7 @@ class Recorder:
     def _animation(self, track: Track, weights: Weights, path: Path) -> None:
         from ..app import default_character_extras, solve_take
         from ..io import export
-        from ..targets import GAZE_NAMES, Mapping, default_character, retarget, with_gaze_targets
+        from ..targets import GAZE_NAMES, Mapping, default_character, drive_gaze, retarget, with_gaze_targets
 
         rig = self.rig if self.rig is not None else with_gaze_targets(default_character(self.keys))
         mapping = self.mapping if self.mapping is not None else \
@@ -180,6 +180,8 @@ class Recorder:
         solved = solve_take(track, self.keys, smoothness=0.0)  # head poses and gaze of every frame
         eyes = solved.gaze.rotations() if solved.gaze is not None else None
         anim, colours = retarget(weights, mapping), None
+        if mapping.gaze and track.blendshapes is not None:  # MAP.json's gaze targets, as keyshape run does
+            anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)
         if self.builtin and set(GAZE_NAMES) <= set(rig.names):  # the stylised head, as keyshape run writes it
             anim, colours = default_character_extras(anim, solved.gaze)
         export(anim, path, rig=rig, poses=solved.poses, eyes=eyes, colours=colours)
