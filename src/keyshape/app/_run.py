@@ -182,8 +182,7 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     save_keys(keys, stage / "keys.json")
     save_weights_csv(solved.weights, stage / "weights.csv")
     anim = retarget(solved.weights, mapping)
-    if mapping.gaze and track.blendshapes is not None:  # gaze on its own channel (map.json's "gaze")
-        anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)
+    anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)  # map.json's "gaze"
     source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
     if source is not None and remade:  # mirrored keys' targets made: the file gets them

@@ -180,8 +180,7 @@ class Recorder:
         solved = solve_take(track, self.keys, smoothness=0.0)  # head poses and gaze of every frame
         eyes = solved.gaze.rotations() if solved.gaze is not None else None
         anim, colours = retarget(weights, mapping), None
-        if mapping.gaze and track.blendshapes is not None:  # MAP.json's gaze targets, as keyshape run does
-            anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)
+        anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)  # as keyshape run does
         if self.builtin and set(GAZE_NAMES) <= set(rig.names):  # the stylised head, as keyshape run writes it
             anim, colours = default_character_extras(anim, solved.gaze)
         export(anim, path, rig=rig, poses=solved.poses, eyes=eyes, colours=colours)

@@ -147,13 +147,9 @@ def _keys_table(keys: KeyShapes, fps: float, video_frames=None) -> str:
     """One row per key: its frame and time in the video (``video_frames``, from :func:`take_numbers`;
     the track row over ``fps`` for a key of another take)."""
     video_frames = video_frames or [None] * keys.n_keys
-
-    def when(k):
-        at = video_frames[k]
-        return (at["frame"], at["time"]) if at else (int(keys.frames[k]), keys.frames[k] / fps)
-
+    when = [(at["frame"], at["time"]) if at else (int(f), f / fps) for at, f in zip(video_frames, keys.frames)]
     rows = "".join(f"<tr><td>{html.escape(keys.names[k])}</td><td>{html.escape(keys.key_regions[k])}</td>"
-                   f'<td class="n">{when(k)[0]}</td><td class="n">{when(k)[1]:.2f} s</td>'
+                   f'<td class="n">{when[k][0]}</td><td class="n">{when[k][1]:.2f} s</td>'
                    f"<td>{html.escape(keys.takes[k])}</td></tr>" for k in range(keys.n_keys))
     return ('<table id="keys"><tr><th>name</th><th>region</th><th>video frame</th><th>time</th><th>take</th></tr>'
             f"{rows}</table>")

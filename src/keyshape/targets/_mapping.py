@@ -369,7 +369,8 @@ def drive_gaze(anim: Weights, mapping: Mapping, scores, score_names) -> Weights:
     ----------
     anim : Weights, ``(n_frames, n_targets)`` named ``mapping.targets`` (at least)
     mapping : Mapping
-    scores : (n_frames, n_scores) float, NaN where no face
+    scores : (n_frames, n_scores) float, NaN where no face; None (a track without scores):
+        ``anim`` as it is
     score_names : sequence of n_scores str
 
     Returns
@@ -381,7 +382,7 @@ def drive_gaze(anim: Weights, mapping: Mapping, scores, score_names) -> Weights:
     InputError
         ``scores`` has another number of frames than ``anim``.
     """
-    if not mapping.gaze:
+    if not mapping.gaze or scores is None:
         return anim
     scores = np.asarray(scores, dtype=float)
     if scores.ndim != 2 or len(scores) != anim.n_frames:

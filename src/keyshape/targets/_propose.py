@@ -32,9 +32,8 @@ References
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -561,8 +560,7 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
         # irises turn the eyes' own nodes of a glTF rig that has them
         mapping = propose_mapping(keys, character, correspondence=corr, normalize=normalize, scores=scores)
         if scores is not None and not _eyes_on_nodes(rig):
-            mapping = dataclasses.replace(mapping, gaze=gaze_channels(scores.names, character.names,
-                                                                      rest=corr.rest_scores))
+            mapping = replace(mapping, gaze=gaze_channels(scores.names, character.names, rest=corr.rest_scores))
         return AutoTargets(character, mapping, "mapping", corr)
     if rig is None and correspondence is None and falloff == 1.0:
         proposed = default_character(keys)  # with its mouth interior following the jaw
