@@ -98,8 +98,8 @@ def refine(video, base, raised: dict, route: np.ndarray, names, *, delta: float,
     The renders are put onto the video's picture by one similarity for the whole take (fitted on
     MediaPipe's stable points over every frame); what differs per frame (the head's translation,
     scale, roll, pitch and yaw) is solved with the expression, so that no per-frame alignment on
-    landmarks takes up part of the expression (a per-frame alignment on the stable points instead:
-    18.3 % on ICT, against 17.2 %).
+    landmarks takes up part of the expression (a per-frame alignment on the stable points instead
+    costs about a point on ICT: BENCHMARKS.md).
     """
     from scipy.optimize import lsq_linear
 
