@@ -79,18 +79,6 @@ def render_and_track(rig, colours, weights: np.ndarray, rotations: np.ndarray, c
     return track_video(path, progress=False)
 
 
-def similarity(source: np.ndarray, target: np.ndarray, ids: np.ndarray):
-    """The similarity ``x ↦ s R (x − μ_s) + μ_t`` taking ``source[ids]`` onto ``target[ids]`` (Umeyama)."""
-    s, t = source[ids], target[ids]
-    ms, mt = s.mean(axis=0), t.mean(axis=0)
-    u, d, vt = np.linalg.svd((t - mt).T @ (s - ms))
-    e = np.ones(len(d))
-    e[-1] = np.sign(np.linalg.det(u @ vt))
-    rotation = u @ np.diag(e) @ vt
-    scale = (d * e).sum() / ((s - ms) ** 2).sum()
-    return lambda x: scale * (x - ms) @ rotation.T + mt
-
-
 def refine(video, base, raised: dict, route: np.ndarray, names, *, delta: float, ridge: float,
            turn: float) -> np.ndarray:
     """The route's weights ``(n_frames, n_targets)`` with the probed targets refined frame by frame.
@@ -103,13 +91,18 @@ def refine(video, base, raised: dict, route: np.ndarray, names, *, delta: float,
     """
     from scipy.optimize import lsq_linear
 
+    from keyshape.alignment import procrustes
     from keyshape.schemes import stable_points
 
     stable = stable_points(478)
     probed = [names.index(n) for n in raised]
     seen = np.isfinite(video.points).all(axis=(1, 2)) & np.isfinite(base.points).all(axis=(1, 2))
-    align = similarity(base.points[seen][:, stable, :2].reshape(-1, 2),
-                       video.points[seen][:, stable, :2].reshape(-1, 2), slice(None))
+    take = procrustes(base.points[seen][:, stable, :2].reshape(-1, 2),
+                      video.points[seen][:, stable, :2].reshape(-1, 2))  # one similarity (Umeyama) for the take
+
+    def align(points):
+        return take.to_image(points[None])[0]
+
     out = route.copy()
     n = len(probed)
     for f in np.flatnonzero(seen):
