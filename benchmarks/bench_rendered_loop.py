@@ -297,7 +297,8 @@ def as_it_looks(rig, colours: np.ndarray, path: Path) -> Path:
 
 def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndarray, run: Path, start: float,
                    transfer: bool = False) -> Loop:
-    """``keyshape run VIDEO --rig RIG --auto-targets``, its result and the other routes scored on ``rig``."""
+    """``keyshape run VIDEO --rig RIG --auto-targets``, its result and the other routes scored on ``rig``
+    (the same run with ``--no-refine`` too, on its track)."""
     from keyshape.app import RunOptions, run_take
     from keyshape.io import load_track, load_weights_csv
     from keyshape.io.gltf import read_glb_animation
@@ -310,6 +311,12 @@ def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndar
     estimates = {"keyshape": np.column_stack([written.weights[:, written.names.index(n)] for n in rig.names]),
                  "mediapipe": np.nan_to_num(tracked.blendshapes) @ arkit_to_rig(tracked.blendshape_names,
                                                                                 rig.names).T}
+    # the same take without render and compare: the targets follow MediaPipe's scores alone
+    run_take(video, run.with_name(run.name + "_no_refine"), RunOptions(rig=rig_folder, auto_targets=True, refine=False,
+                                                                        preview=False, extras=False),
+             progress=False, track=tracked)
+    plain = read_glb_animation(run.with_name(run.name + "_no_refine") / "animation.glb")
+    estimates["keyshape, --no-refine"] = np.column_stack([plain.weights[:, plain.names.index(n)] for n in rig.names])
     estimates.update(oracles(key_weights.values, truth))
     sets = vertex_sets(rig, landmarks)
     scores = {route: vertex_error(rig, truth, np.nan_to_num(e), sets) for route, e in estimates.items()}

@@ -80,7 +80,7 @@ def render_and_track(rig, colours, weights: np.ndarray, rotations: np.ndarray, c
 
 
 def refine(video, base, raised: dict, route: np.ndarray, names, *, delta: float, ridge: float,
-           turn: float) -> np.ndarray:
+           turn: float, reference: str = "none", neutral: int = 0) -> np.ndarray:
     """The route's weights ``(n_frames, n_targets)`` with the probed targets refined frame by frame.
 
     The renders are put onto the video's picture by one similarity for the whole take (fitted on
@@ -103,11 +103,19 @@ def refine(video, base, raised: dict, route: np.ndarray, names, *, delta: float,
     def align(points):
         return take.to_image(points[None])[0]
 
+    frames = np.flatnonzero(seen)
+    residuals = {f: video.points[f, :, :2] - align(base.points[f, :, :2]) for f in frames}
+    if reference == "median":
+        offset = float(__import__("os").environ.get("ALPHA", 1)) * np.median(np.stack(list(residuals.values())), axis=0)
+    elif reference == "neutral":
+        offset = residuals[neutral] if neutral in residuals else np.zeros((478, 2))
+    else:
+        offset = np.zeros((478, 2))
     out = route.copy()
     n = len(probed)
-    for f in np.flatnonzero(seen):
+    for f in frames:
         at = align(base.points[f, :, :2])
-        residual = (video.points[f, :, :2] - at).ravel()
+        residual = (residuals[f] - offset).ravel()
         steps = np.maximum(np.minimum(route[f, probed] + delta, 1) - route[f, probed], 1e-3)
         columns = [(align(raised[name].points[f, :, :2]) - at).ravel() / step for name, step in zip(raised, steps)]
         depth = base.points[f, :, 2] - base.points[f, :, 2].mean()
@@ -140,7 +148,8 @@ def through_keys(refined: np.ndarray, route: np.ndarray, key_weights: np.ndarray
 
 
 def probe(loop: Path, character: str, *, targets=PROBED, delta: float = 0.2, ridge: float = 1.0,
-          turn: float = 1e-6, smooth: float = 3.0, rotation: str = "tracked", camera: str = "product") -> dict:
+          turn: float = 1e-6, smooth: float = 3.0, rotation: str = "tracked", camera: str = "product",
+          keep: Path | None = None, reference: str = "none") -> dict:
     """Scores (% per vertex set) of the route as written, refined per frame, and refined through the keys."""
     from scipy.ndimage import gaussian_filter1d
 
@@ -171,7 +180,16 @@ def probe(loop: Path, character: str, *, targets=PROBED, delta: float = 0.2, rid
     names = list(rig.names)
     with tempfile.TemporaryDirectory() as scratch:
         def track(weights, name):
-            return render_and_track(rig, colours, weights, rotations, view, pivot, video.fps, Path(scratch) / name)
+            from keyshape.io import save_track
+
+            kept = keep / f"{character}_{rotation}_{camera}_{Path(name).stem}.npz" if keep else None
+            if kept is not None and kept.exists():
+                return load_track(kept)
+            tracked = render_and_track(rig, colours, weights, rotations, view, pivot, video.fps, Path(scratch) / name)
+            if kept is not None:
+                keep.mkdir(parents=True, exist_ok=True)
+                save_track(tracked, kept)
+            return tracked
 
         base = track(route, "base.mp4")
         raised = {}
@@ -180,7 +198,11 @@ def probe(loop: Path, character: str, *, targets=PROBED, delta: float = 0.2, rid
             lifted = route.copy()
             lifted[:, j] = np.clip(lifted[:, j] + delta, 0, 1)
             raised[name] = track(lifted, f"{name}.mp4")
-    refined = refine(video, base, raised, route, names, delta=delta, ridge=ridge, turn=turn)
+    import json
+
+    neutral = int(json.loads((run / "take.json").read_text())["neutral_frame"])
+    refined = refine(video, base, raised, route, names, delta=delta, ridge=ridge, turn=turn, reference=reference,
+                     neutral=neutral)
     probed = [names.index(n) for n in targets]
     if smooth:
         refined[:, probed] = np.clip(gaussian_filter1d(refined[:, probed], smooth, axis=0), 0, 1)
@@ -202,6 +224,9 @@ def main(argv=None) -> None:
                         help="frame on the corresponded points, or exactly as the benchmark framed its video")
     parser.add_argument("--smooth", type=float, default=3.0, help="Gaussian σ in frames of the refined weights")
     parser.add_argument("--ridge", type=float, default=1.0, help="λ, px² per unit weight²")
+    parser.add_argument("--reference", choices=("none", "median", "neutral"), default="none",
+                        help="subtract no offset from the residual, its take median, or its value at the neutral frame")
+    parser.add_argument("--keep", type=Path, help="keep the renders' tracks here and reuse them on the next run")
     args = parser.parse_args(argv)
     characters = ("ICT", "caricature") if args.character == "both" else (args.character,)
     print("| character | route | face area | upper | lower |")
@@ -209,7 +234,8 @@ def main(argv=None) -> None:
     for character in characters:
         start = time.perf_counter()
         scores = probe(args.out, character, targets=tuple(args.targets.split(",")), smooth=args.smooth,
-                       ridge=args.ridge, rotation=args.rotation, camera=args.camera)
+                       ridge=args.ridge, rotation=args.rotation, camera=args.camera, keep=args.keep,
+                       reference=args.reference)
         for route, s in scores.items():
             print(f"| {character} | {route} | {s['face']:.1f} % | {s['upper']:.1f} % | {s['lower']:.1f} % |")
         print(f"{character}: {time.perf_counter() - start:.0f} s", file=sys.stderr)

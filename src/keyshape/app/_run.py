@@ -60,6 +60,7 @@ class RunOptions:
     correspondence: Path | None = None  # auto_targets: landmark -> mesh file (default: found)
     front: str = "auto"  # auto_targets: the axis the character's face looks along (default: looked for)
     normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
+    refine: bool = True  # auto_targets, score mapping: refine the targets the scores barely see (render and compare)
     preview: bool = True
     extras: bool = True
     formats: tuple[str, ...] = ()  # the animation also as animation.<suffix>: "fbx", "blend", "usd"
@@ -108,6 +109,36 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
 
     gaze_only = set(rig.names) - set(keys.names) <= set(GAZE_NAMES)  # e.g. a take's own animation.glb
     return rig, Mapping.by_name(keys.names, rig.names, allow_extra=gaze_only), True, None, rig is not read
+
+
+def _refined(auto, options: RunOptions, track: Track, weights, progress: bool):
+    """The score mapping with the targets the scores barely see refined on the landmarks
+    (:func:`keyshape.targets.refine_mapping`: render and compare); None when the rig has none of them."""
+    import warnings
+
+    from ..targets import refine_mapping
+    from ..targets._propose import _colours
+    from ..targets._refine import refinable_targets
+
+    if not refinable_targets(auto.rig.names):  # not an ARKit rig: nothing to refine, nothing to say
+        return None
+    colours = _colours(Path(options.rig)) if options.rig is not None else None
+    refinement = refine_mapping(auto.mapping, auto.rig, auto.correspondence, track, weights, colours=colours,
+                                progress=progress)
+    if refinement.reason:
+        warnings.warn(f"render and compare skipped: {refinement.reason}; the targets follow the scores",
+                      stacklevel=2)
+    return refinement
+
+
+def _refined_note(refinement) -> dict | None:
+    """What render and compare did, for ``map.json`` (and the report)."""
+    if refinement is None:
+        return None
+    if not refinement.targets:
+        return {"targets": [], "skipped": refinement.reason}
+    before, after = refinement.residual_px
+    return {"targets": list(refinement.targets), "residual_px": [round(before, 3), round(after, 3)]}
 
 
 def with_mirrored_targets(rig: Rig, keys: KeyShapes) -> Rig:
@@ -276,12 +307,16 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     scores = key_scores(keys, track, solved.weights,
                         same_take=options.keys is None and not isinstance(options.neutral, Path))  # reused keys too
     rig, mapping, keep_file, auto, remade = _rig_and_mapping(options, keys, scores, loaded_rig)
+    refinement = None
+    if auto is not None and auto.route == "mapping" and options.refine:
+        refinement = _refined(auto, options, track, solved.weights, progress)
+        mapping = refinement.mapping if refinement is not None else mapping
     with staged_folder(outdir, owned=_run_owned) as stage:  # stale outputs of an earlier run go
         _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file, remade)
         if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
             auto.correspondence.save(stage / "correspondence.json")
             if auto.route == "mapping":
-                auto.mapping.save(stage / "map.json")
+                mapping.save(stage / "map.json", refined=_refined_note(refinement))
         if options.extras:
             from ..report import write_take_extras
 

@@ -38,6 +38,11 @@ def add_arguments(p) -> None:
                         "map.json) to OUTDIR, to edit and pass back")
     add_correspondence_option(p, when="with --auto-targets: ")
     add_normalize_option(p, when="with --auto-targets on a rig with its own blendshapes: ")
+    p.add_argument("--no-refine", dest="refine", action="store_false",
+                   help="with --auto-targets on an ARKit rig: skip render and compare (the character rendered "
+                        "as driven, tracked again, and the jaw, lower lip, squint, outer brow and pucker targets "
+                        "refined on the landmarks; one more tracking pass per target, about 9). Faster, "
+                        "and those targets follow MediaPipe's scores alone")
     add_capture_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     add_key_options(p)
@@ -58,8 +63,8 @@ def add_format_option(p) -> None:
 
 def check(parser, args) -> None:
     """Usage errors argparse cannot see (exit code 2)."""
-    if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto"):
-        parser.error("--correspondence, --front and --normalize only apply with --auto-targets")
+    if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine):
+        parser.error("--correspondence, --front, --normalize and --no-refine only apply with --auto-targets")
 
 
 def run(args) -> None:
@@ -69,7 +74,8 @@ def run(args) -> None:
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          mirror=args.mirror, neutral=args.neutral, auto_targets=args.auto_targets,
                          correspondence=args.correspondence, front=args.front, normalize=args.normalize,
-                         capture=capture_kwargs(args), preview=not args.no_preview, formats=tuple(args.formats),
+                         refine=args.refine, capture=capture_kwargs(args), preview=not args.no_preview,
+                         formats=tuple(args.formats),
                          **solve_kwargs(args))
     summary = run_take(args.video, args.output, options, progress=progress(args))
     keys = summary.keys

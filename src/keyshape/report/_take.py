@@ -82,6 +82,10 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
                      f"{quality['of']} landmarks on its surface, {quality['moved']} moved onto a usable part; "
                      f"median {quality['median_residual_pct']:g} %, 95 % within {quality['p95_residual_pct']:g} % "
                      "of the render's width from where MediaPipe put them (check correspondence.json if large).")
+    refined = _refinement(outdir / "map.json")
+    if refined:
+        numbers["render_and_compare"] = refined
+        notes.append(_refinement_note(refined))
     movie = _preview(outdir, take, progress=progress, backend=backend) if preview else None
     if not preview and (outdir / "preview.mp4").is_file():
         movie = outdir / "preview.mp4"  # from an earlier run
@@ -105,6 +109,28 @@ def _correspondence_quality(path: Path) -> dict | None:
         return None
     needed = ("landmarks_kept", "of", "moved", "median_residual_pct", "p95_residual_pct")
     return quality if isinstance(quality, dict) and all(k in quality for k in needed) else None
+
+
+def _refinement(path: Path) -> dict | None:
+    """The ``refined`` entry of the automatic ``map.json`` beside the take (None without one)."""
+    import json
+
+    if not path.is_file():
+        return None
+    try:
+        refined = json.loads(path.read_text(encoding="utf-8")).get("refined")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return refined if isinstance(refined, dict) and isinstance(refined.get("targets"), list) else None
+
+
+def _refinement_note(refined: dict) -> str:
+    if not refined["targets"]:
+        skipped = refined.get("skipped", "no reason given")
+        return f"Render and compare skipped ({skipped}): every target follows the scores."
+    before, after = refined.get("residual_px", (float("nan"), float("nan")))
+    return (f"Render and compare refined {', '.join(refined['targets'])} on the landmarks of the character's own "
+            f"renders: landmark residual {before:.2f} px → {after:.2f} px (RMS, video pixels).")
 
 
 def _video_source(movie: Path | None, embed: bool) -> str | None:

@@ -5,6 +5,8 @@
 * :func:`auto_targets`, :func:`propose_targets`, :func:`propose_mapping` — no sculpting: the
   character's version of every key shape (expression transfer), or a key → blendshape mapping
   for a rig with shapes of its own;
+* :func:`refine_mapping` — render and compare: the mapping's targets the tracker's scores barely
+  see (jaw, lower lip, squint ...) refined on the landmarks of the character's own renders;
 * :func:`transfer_expressions` — the transfer itself (deformation transfer on the mesh);
 * :class:`Correspondence`, :func:`find_correspondence`, :func:`read_correspondence` — where the
   landmarks sit on the character (given in a file, or found on a render);
@@ -29,11 +31,13 @@ from ._propose import (
     proposer,
     resolve_correspondence,
 )
+from ._refine import REFINED_SCORES, Refinement, refine_mapping
 from ._transfer import LandmarkMotion, feature_groups, landmark_motion, spread, transfer_expressions
 
 __all__ = ["Mapping", "retarget", "drive_gaze", "complete_mirrors", "mirror_sources",
            "AutoTargets", "KeyScores", "auto_targets", "gaze_channels", "propose_targets", "propose_mapping", "proposer",
            "resolve_correspondence",
+           "refine_mapping", "Refinement", "REFINED_SCORES",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
            "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",
            "Character", "stylised_head", "canonical_face", "default_character", "with_gaze_targets",

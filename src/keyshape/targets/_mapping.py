@@ -256,8 +256,12 @@ class Mapping:
             raise InputError('"matrix" must be a list of rows of numbers (one row per target)') from None
         return cls(matrix, keys, targets)
 
-    def save(self, path) -> Path:
-        """Write the mapping as JSON (``{"format": "keyshape-map", "version": 1, "gains": ...}``), atomically."""
+    def save(self, path, *, refined: dict | None = None) -> Path:
+        """Write the mapping as JSON (``{"format": "keyshape-map", "version": 1, "gains": ...}``), atomically.
+
+        ``refined``: what :func:`keyshape.targets.refine_mapping` did, kept as the file's
+        ``"refined"`` entry (read by the report, ignored when the mapping is read back).
+        """
         from ..io.atomic import atomic_path
 
         document = {"format": MAP_FORMAT, "version": 1, "gains": self.to_dict()}
@@ -265,6 +269,8 @@ class Mapping:
             document["offset"] = {t: float(c) for t, c in zip(self.targets, self.offset) if c != 0}
         if self.gaze:
             document["gaze"] = {t: {"score": score, "rest": rest} for t, score, rest in self.gaze}
+        if refined is not None:
+            document["refined"] = refined
         text = json.dumps(document, indent=1)
         with atomic_path(path) as tmp:
             tmp.write_text(text + "\n", encoding="utf-8")

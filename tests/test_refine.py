@@ -1,0 +1,124 @@
+"""Render and compare (keyshape.targets._refine): the solve and the fit through the keys on data with
+known answers; the whole path on a real render runs in test_rendered_loop.py (ICT-FaceKit)."""
+
+import numpy as np
+import pytest
+
+from keyshape.containers import Rig, Track, Weights
+from keyshape.targets import Mapping, refine_mapping
+from keyshape.targets._refine import _smooth_seen, fit_through_keys, refinable_targets, solve_corrections
+
+
+def _similarity(points, scale, angle, shift):
+    c, s = np.cos(angle), np.sin(angle)
+    return scale * points @ np.array([[c, -s], [s, c]]).T + shift
+
+
+def _scene(rng, n_frames=60, n_points=60, n_targets=3):
+    """Renders with known landmark responses, and a video made of them by known corrections, a take
+    similarity, per-frame head moves and a constant proportion offset."""
+    rest = rng.uniform(100, 400, (n_points, 2))
+    depth = rng.normal(0, 20, n_points)
+    response = rng.normal(0, 15, (n_targets, n_points, 2))  # px per unit weight, in the render
+    route = rng.uniform(0.3, 0.6, (n_frames, n_targets))
+    truth = rng.uniform(-0.25, 0.25, (n_frames, n_targets))
+    truth[rng.permutation(n_frames)[: int(0.7 * n_frames)]] = 0  # mostly at the route's level: the take
+    # median of the residual is then the proportions' offset (the level stays with the route)
+    base = np.repeat(rest[None], n_frames, axis=0)
+    base3 = np.concatenate([base, np.broadcast_to(depth[None, :, None], (n_frames, n_points, 1))], axis=2)
+    steps = np.minimum(route + 0.2, 1) - route
+    raised = np.stack([base + steps[:, j, None, None] * response[j][None] for j in range(n_targets)])
+    moved = base + np.einsum("fj,jpd->fpd", truth, response)
+    offset = rng.normal(0, 3, (n_points, 2))  # the actor's and the character's proportions
+    shift = rng.normal(0, 2, (n_frames, 1, 2))  # the head's small moves per frame
+    video = _similarity(moved + offset, 1.3, 0.1, np.array([40.0, -25.0])) + shift
+    return video, base3, raised, route, truth
+
+
+def test_solve_corrections_recovers_known_target_changes():
+    rng = np.random.default_rng(0)
+    video, base, raised, route, truth = _scene(rng)
+    found, (before, after) = solve_corrections(video, base, raised, route, ridge=1e-6)
+    np.testing.assert_allclose(found, truth, atol=0.03)
+    assert after < 0.1 * before
+
+
+def test_solve_corrections_keeps_the_weights_in_range_and_skips_unseen_frames():
+    rng = np.random.default_rng(1)
+    video, base, raised, route, truth = _scene(rng)
+    route[:, 0] = 0.95  # near the top: the corrections cannot push past 1
+    video[5] = np.nan  # no face in the video
+    base[7, 3] = np.nan  # nor in the render
+    found, _ = solve_corrections(video, base, raised, route, ridge=1e-6)
+    assert np.isnan(found[5]).all() and np.isnan(found[7]).all()
+    seen = np.isfinite(found).all(axis=1)
+    assert seen.sum() == len(found) - 2
+    total = route[seen] + found[seen]
+    assert (total >= -1e-9).all() and (total <= 1 + 1e-9).all()
+
+
+def test_fit_through_keys_recovers_a_constant_and_gains():
+    rng = np.random.default_rng(2)
+    weights = rng.uniform(0, 1, (200, 5))
+    offset = np.array([0.1, 0.0, 0.3])
+    gains = rng.uniform(-0.05, 0.6, (3, 5))
+    refined = offset + weights @ gains.T
+    refined[10] = np.nan  # a frame without a face is left out
+    weights[20, 2] = np.nan  # NaN key weights read as 0, as retarget reads them
+    refined[20] = offset + np.nan_to_num(weights[20]) @ gains.T
+    found_offset, found_gains = fit_through_keys(refined, weights, ridge=1e-9)
+    np.testing.assert_allclose(found_offset, offset, atol=1e-5)
+    np.testing.assert_allclose(found_gains, np.maximum(gains, -offset[:, None]), atol=1e-5)
+
+
+def test_smoothing_ignores_unseen_frames():
+    values = np.full((30, 1), 0.4)
+    values[10] = 5.0  # a wild value on a frame that was not seen must not leak
+    seen = np.ones(30, bool)
+    seen[10] = False
+    from scipy.ndimage import gaussian_filter1d
+
+    out = _smooth_seen(values, seen, 3.0, gaussian_filter1d)
+    assert np.isnan(out[10]).all()
+    np.testing.assert_allclose(out[seen], 0.4, atol=1e-12)
+
+
+def test_refinable_targets_reads_every_arkit_spelling():
+    names = ["jawOpen", "mouthLowerDown_L", "MouthLowerDownRight", "eyeSquintLeft", "mouthSmile_L", "browOuterUp_R"]
+    assert refinable_targets(names) == {"jawOpen": 0, "mouthLowerDown_L": 1, "MouthLowerDownRight": 2,
+                                        "eyeSquintLeft": 3, "browOuterUp_R": 5}
+
+
+def _tiny_case(names, head=True):
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(10, 3))
+    rig = Rig(vertices, np.array([[0, 1, 2]]), 0.01 * rng.normal(size=(len(names), 10, 3)), tuple(names))
+    mapping = Mapping(np.full((len(names), 2), 0.5), ("a", "b"), tuple(names))
+    track = Track(rng.normal(size=(20, 478, 3)), 30.0,
+                  head_matrix=np.tile(np.eye(4), (20, 1, 1)) if head else None)
+    return rig, mapping, track, Weights(rng.uniform(0, 1, (20, 2)), ("a", "b"), fps=30.0)
+
+
+@pytest.mark.parametrize("names, head, reason", [
+    (("smile", "frown"), True, "none of the targets"),
+    (("jawOpen", "mouthSmile_L"), False, "no MediaPipe head pose"),
+])
+def test_refine_mapping_says_why_it_leaves_the_mapping_alone(names, head, reason):
+    rig, mapping, track, weights = _tiny_case(names, head)
+    refinement = refine_mapping(mapping, rig, None, track, weights, progress=False)
+    assert refinement.mapping is mapping and refinement.targets == ()
+    assert reason in refinement.reason
+
+
+@pytest.mark.parametrize("front, up", [("+z", "+y"), ("-y", "+z"), ("+x", "+y")])
+def test_the_renders_face_the_camera_whichever_way_the_character_looks(front, up):
+    from keyshape.capture.model_file import canonical_face
+    from keyshape.targets._correspond_auto import view_rotation
+    from keyshape.targets._refine import _front_turn
+
+    face = canonical_face()[0]
+    view = view_rotation(front, up)
+    looking = face @ view  # a character whose face looks along `front`: the view turns it back
+    tilted = looking @ np.array([[1, 0, 0], [0, np.cos(0.2), -np.sin(0.2)], [0, np.sin(0.2), np.cos(0.2)]])
+    for points in (looking, tilted):  # a tilt (e.g. from other proportions) snaps to the same view
+        np.testing.assert_allclose(_front_turn(points - points.mean(axis=0)), view, atol=1e-12)
