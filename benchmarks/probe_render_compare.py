@@ -106,7 +106,7 @@ def refine(video, base, raised: dict, route: np.ndarray, names, *, delta: float,
     frames = np.flatnonzero(seen)
     residuals = {f: video.points[f, :, :2] - align(base.points[f, :, :2]) for f in frames}
     if reference == "median":
-        offset = float(__import__("os").environ.get("ALPHA", 1)) * np.median(np.stack(list(residuals.values())), axis=0)
+        offset = np.median(np.stack(list(residuals.values())), axis=0)
     elif reference == "neutral":
         offset = residuals[neutral] if neutral in residuals else np.zeros((478, 2))
     else:

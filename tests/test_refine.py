@@ -45,7 +45,7 @@ def test_solve_corrections_recovers_known_target_changes():
 
 def test_solve_corrections_keeps_the_weights_in_range_and_skips_unseen_frames():
     rng = np.random.default_rng(1)
-    video, base, raised, route, truth = _scene(rng)
+    video, base, raised, route, _ = _scene(rng)
     route[:, 0] = 0.95  # near the top: the corrections cannot push past 1
     video[5] = np.nan  # no face in the video
     base[7, 3] = np.nan  # nor in the render
@@ -122,3 +122,41 @@ def test_the_renders_face_the_camera_whichever_way_the_character_looks(front, up
     tilted = looking @ np.array([[1, 0, 0], [0, np.cos(0.2), -np.sin(0.2)], [0, np.sin(0.2), np.cos(0.2)]])
     for points in (looking, tilted):  # a tilt (e.g. from other proportions) snaps to the same view
         np.testing.assert_allclose(_front_turn(points - points.mean(axis=0)), view, atol=1e-12)
+
+
+@pytest.mark.slow
+@pytest.mark.render
+def test_render_and_compare_finds_a_jaw_the_scores_missed(tmp_path):
+    """A closed loop on real renders and the real MediaPipe: keyshape's head with a jaw-drop target,
+    rendered with the jaw following a key's weight (the "video"); a mapping that holds the jaw still
+    at its mean (what the score route gives when the score does not see the jaw) is refined back to
+    the jaw's known gain and constant."""
+    from keyshape.capture import track_video
+    from keyshape.render import frame_points, make_renderer
+    from keyshape.render.encode import VideoWriter
+    from keyshape.targets import stylised_head
+
+    head = stylised_head()
+    v = head.rig.vertices
+    below = np.clip((-0.05 - v[:, 1]) / 0.015, 0, 1) * np.exp(-(v[:, 0] / 0.04) ** 2) * (v[:, 2] > -0.02)
+    jaw = np.zeros_like(v)
+    jaw[:, 1] = -0.012 * below  # the chin and lower lip drop 12 mm at full weight
+    rig = Rig(v, head.rig.faces, jaw[None], ("jawOpen",))
+    key = 0.5 + 0.5 * np.sin(2 * np.pi * np.arange(72) / 72)  # one key: the mouth opens and closes, slowly
+    truth_offset, truth_gain = 0.3, 0.4
+    camera = frame_points(v, margin=1.3)
+    video = tmp_path / "video.mp4"
+    with make_renderer(rig.faces, 512, 512, n_vertices=rig.n_vertices, colours=head.colours) as renderer, \
+            VideoWriter(video, 512, 512, 24.0, crf=16) as out:
+        for w in key:
+            out.write(renderer.render(rig.pose(np.array([[truth_offset + truth_gain * w]]))[0], camera))
+    track = track_video(video, progress=False)
+    assert track.valid.mean() > 0.95
+    still = Mapping(np.zeros((1, 1)), ("k",), ("jawOpen",), offset=np.array([truth_offset + truth_gain * key.mean()]))
+    refinement = refine_mapping(still, rig, head.correspondence(478), track, Weights(key[:, None], ("k",), fps=24.0),
+                                colours=head.colours, progress=False)
+    assert refinement.targets == ("jawOpen",) and refinement.reason == ""
+    before, after = refinement.residual_px
+    assert after < 0.7 * before
+    gain, offset = refinement.mapping.matrix[0, 0], refinement.mapping.offset[0]
+    assert gain == pytest.approx(truth_gain, abs=0.15) and offset == pytest.approx(truth_offset, abs=0.12)

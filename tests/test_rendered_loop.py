@@ -44,16 +44,18 @@ def test_rendered_loop(tmp_path):
     for loop in loops.values():
         scores = loop.scores
         assert loop.detection_rate > 0.95
-        # measured on ICT: keyshape 22.2 % (face) / 37 % (upper) / 17 % (lower); MediaPipe's own scores
-        # 35 / 81 / 18; the oracle mappings 11.3 % (>= 0) and 9.6 % (signed + constant); read off the
-        # key frames 25.5 %, without the character's rest scores 35 %, the geometric mapping 116 %.
-        # On the caricature: 22.5 / 36 / 17, MediaPipe 34 / 78 / 18
-        assert scores["keyshape"]["face"] < 27 and scores["keyshape"]["lower"] < 21
-        assert scores["keyshape"]["face"] < 0.75 * scores["mediapipe"]["face"]
+        # measured on ICT: keyshape 18.6 % (face) / 30 % (upper) / 15 % (lower), without render and
+        # compare 22.3 / 37 / 17; MediaPipe's own scores 35 / 81 / 18; the oracle mappings 11.2 % (>= 0)
+        # and 9.9 % (signed + constant). On the caricature: 18.5 / 31 / 14 (22.5 without), MediaPipe 34 / 78 / 18
+        assert scores["keyshape"]["face"] < 21 and scores["keyshape"]["lower"] < 17
+        assert scores["keyshape"]["face"] < 0.6 * scores["mediapipe"]["face"]
+        # render and compare (the targets the scores miss, refined on the landmarks) gains on both heads
+        assert scores["keyshape"]["face"] < scores["keyshape, --no-refine"]["face"] - 2
+        assert scores["keyshape"]["upper"] < scores["keyshape, --no-refine"]["upper"] - 3
         assert scores["oracle (signed + constant)"]["face"] < 15
         assert scores["mediapipe"]["face"] < 45
     ict, other = loops["ICT"].scores, loops["caricature"].scores
-    assert abs(ict["keyshape"]["face"] - other["keyshape"]["face"]) < 5  # the proportions change little
+    assert abs(ict["keyshape"]["face"] - other["keyshape"]["face"]) < 3  # the proportions change little
     _gaze_follows_the_eyes(bench, folder, tmp_path)
 
 
