@@ -116,13 +116,15 @@ def _refined(auto, options: RunOptions, track: Track, weights, progress: bool):
     (:func:`keyshape.targets.refine_mapping`: render and compare); None when the rig has none of them."""
     import warnings
 
-    from ..targets import refine_mapping
-    from ..targets._propose import _colours
-    from ..targets._refine import refinable_targets
+    from ..targets import refinable_targets, refine_mapping
 
     if not refinable_targets(auto.rig.names):  # not an ARKit rig: nothing to refine, nothing to say
         return None
-    colours = _colours(Path(options.rig)) if options.rig is not None else None
+    colours = None
+    if options.rig is not None and Path(options.rig).suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import read_colours
+
+        colours = read_colours(options.rig)  # rendered as it looks, as for the correspondence
     refinement = refine_mapping(auto.mapping, auto.rig, auto.correspondence, track, weights, colours=colours,
                                 progress=progress)
     if refinement.reason:

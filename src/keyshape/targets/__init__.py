@@ -31,13 +31,13 @@ from ._propose import (
     proposer,
     resolve_correspondence,
 )
-from ._refine import REFINED_SCORES, Refinement, refine_mapping
+from ._refine import REFINED_SCORES, Refinement, refinable_targets, refine_mapping
 from ._transfer import LandmarkMotion, feature_groups, landmark_motion, spread, transfer_expressions
 
 __all__ = ["Mapping", "retarget", "drive_gaze", "complete_mirrors", "mirror_sources",
            "AutoTargets", "KeyScores", "auto_targets", "gaze_channels", "propose_targets", "propose_mapping", "proposer",
            "resolve_correspondence",
-           "refine_mapping", "Refinement", "REFINED_SCORES",
+           "refine_mapping", "refinable_targets", "Refinement", "REFINED_SCORES",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
            "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",
            "Character", "stylised_head", "canonical_face", "default_character", "with_gaze_targets",

@@ -109,7 +109,7 @@ def refinable_targets(rig_names) -> dict[str, int]:
 
 def solve_corrections(video: np.ndarray, base: np.ndarray, raised: np.ndarray, route: np.ndarray, *,
                       delta: float = 0.2, ridge: float = 1.0, turn: float = 1e-6,
-                      stable: np.ndarray | None = None) -> tuple[np.ndarray, tuple[float, float]]:
+                      stable: np.ndarray | None = None, prior: np.ndarray | None = None) -> tuple[np.ndarray, tuple[float, float]]:
     r"""Per-frame corrections ``Δ (n_frames, n)`` of ``n`` targets (the module docstring's problem).
 
     Parameters
@@ -175,8 +175,10 @@ def solve_corrections(video: np.ndarray, base: np.ndarray, raised: np.ndarray, r
     for f, design, wanted in systems:
         low = np.concatenate([-route[f], [-1, -1], [-np.inf] * 4])
         high = np.concatenate([1 - route[f] + 1e-12, [1, 1], [np.inf] * 4])
-        x = lsq_linear(np.vstack([design, regular]), np.concatenate([wanted, np.zeros(n + _HEAD_COLUMNS)]),
-                       bounds=(low, high)).x
+        pulled = np.zeros(n + _HEAD_COLUMNS)
+        if prior is not None:
+            pulled[:n] = np.sqrt(ridge) * np.clip(prior[f] - route[f], low[:n], high[:n])
+        x = lsq_linear(np.vstack([design, regular]), np.concatenate([wanted, pulled]), bounds=(low, high)).x
         out[f] = x[:n]
         head = np.linalg.lstsq(design[:, n:], wanted, rcond=None)[0]  # the head's moves alone
         before.append(np.mean((wanted - design[:, n:] @ head) ** 2))
