@@ -6,7 +6,13 @@ import pytest
 
 from keyshape.containers import Rig, Track, Weights
 from keyshape.targets import Mapping, refine_mapping
-from keyshape.targets._refine import _smooth_seen, fit_through_keys, refinable_targets, solve_corrections
+from keyshape.targets._refine import (
+    _smooth_seen,
+    fit_in_landmarks,
+    fit_through_keys,
+    refinable_targets,
+    solve_corrections,
+)
 
 
 def _similarity(points, scale, angle, shift):
@@ -69,6 +75,28 @@ def test_fit_through_keys_recovers_a_constant_and_gains():
     found_offset, found_gains = fit_through_keys(refined, weights, ridge=1e-9)
     np.testing.assert_allclose(found_offset, offset, atol=1e-5)
     np.testing.assert_allclose(found_gains, np.maximum(gains, -offset[:, None]), atol=1e-5)
+
+
+def test_fit_in_landmarks_recovers_the_rows_from_every_frame_at_once():
+    rng = np.random.default_rng(4)
+    n_frames, n_points = 80, 60
+    keys = rng.uniform(0, 1, (n_frames, 3))
+    offset, gains = np.array([0.2, 0.35]), np.array([[0.3, 0.0, 0.1], [0.0, 0.25, 0.2]])
+    truth = offset + keys @ gains.T  # (n_frames, 2): what the character should do
+    route = truth.copy()
+    wrong = rng.permutation(n_frames)[: int(0.3 * n_frames)]
+    route[wrong] = rng.uniform(0.1, 0.9, (len(wrong), 2))  # the route is off on some frames
+    rest = rng.uniform(100, 400, (n_points, 2))
+    response = rng.normal(0, 15, (2, n_points, 2))
+    base = np.concatenate([np.repeat(rest[None], n_frames, axis=0), rng.normal(0, 20, (1, n_points, 1)).repeat(
+        n_frames, axis=0)], axis=2)
+    steps = np.minimum(route + 0.2, 1) - route
+    raised = np.stack([base[..., :2] + steps[:, j, None, None] * response[j][None] for j in range(2)])
+    moved = base[..., :2] + np.einsum("fj,jpd->fpd", truth - route, response) + rng.normal(0, 3, (n_points, 2))
+    video = _similarity(moved, 0.8, -0.05, np.array([10.0, 5.0])) + rng.normal(0, 2, (n_frames, 1, 2))
+    found_offset, found_gains = fit_in_landmarks(video, base, raised, route, keys, ridge=1e-9)
+    np.testing.assert_allclose(found_offset, offset, atol=0.03)
+    np.testing.assert_allclose(found_gains, gains, atol=0.04)
 
 
 def test_smoothing_ignores_unseen_frames():
@@ -153,10 +181,18 @@ def test_render_and_compare_finds_a_jaw_the_scores_missed(tmp_path):
     track = track_video(video, progress=False)
     assert track.valid.mean() > 0.95
     still = Mapping(np.zeros((1, 1)), ("k",), ("jawOpen",), offset=np.array([truth_offset + truth_gain * key.mean()]))
-    refinement = refine_mapping(still, rig, head.correspondence(478), track, Weights(key[:, None], ("k",), fps=24.0),
-                                colours=head.colours, progress=False)
-    assert refinement.targets == ("jawOpen",) and refinement.reason == ""
-    before, after = refinement.residual_px
+    weights = Weights(key[:, None], ("k",), fps=24.0)
+    per_frame = refine_mapping(still, rig, head.correspondence(478), track, weights, colours=head.colours,
+                               blend=0.0, progress=False)
+    assert per_frame.targets == ("jawOpen",) and per_frame.reason == ""
+    before, after = per_frame.residual_px
     assert after < 0.7 * before
-    gain, offset = refinement.mapping.matrix[0, 0], refinement.mapping.offset[0]
+    gain, offset = per_frame.mapping.matrix[0, 0], per_frame.mapping.offset[0]
     assert gain == pytest.approx(truth_gain, abs=0.15) and offset == pytest.approx(truth_offset, abs=0.12)
+    # the default blends in the fit on every frame at once, whose ridge shrinks a gain by about
+    # v / (v + 0.1) (v: the key weight's variance, 0.125 here): the same sign, smaller, the same level
+    blended = refine_mapping(still, rig, head.correspondence(478), track, weights, colours=head.colours,
+                             progress=False).mapping
+    assert 0.3 * gain < blended.matrix[0, 0] < gain
+    assert blended.offset[0] + blended.matrix[0, 0] * key.mean() == pytest.approx(
+        offset + gain * key.mean(), abs=0.05)
