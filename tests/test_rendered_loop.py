@@ -44,13 +44,13 @@ def test_rendered_loop(tmp_path):
     for loop in loops.values():
         scores = loop.scores
         assert loop.detection_rate > 0.95
-        # measured on ICT: keyshape 18.6 % (face) / 30 % (upper) / 15 % (lower), without render and
+        # measured on ICT: keyshape 18.2 % (face) / 29 % (upper) / 14 % (lower), without render and
         # compare 22.3 / 37 / 17; MediaPipe's own scores 35 / 81 / 18; the oracle mappings 11.2 % (>= 0)
-        # and 9.9 % (signed + constant). On the caricature: 18.5 / 31 / 14 (22.5 without), MediaPipe 34 / 78 / 18
-        assert scores["keyshape"]["face"] < 21 and scores["keyshape"]["lower"] < 17
-        assert scores["keyshape"]["face"] < 0.6 * scores["mediapipe"]["face"]
+        # and 9.9 % (signed + constant). On the caricature: 17.8 / 29 / 14 (22.5 without), MediaPipe 34 / 78 / 18
+        assert scores["keyshape"]["face"] < 20 and scores["keyshape"]["lower"] < 16
+        assert scores["keyshape"]["face"] < 0.58 * scores["mediapipe"]["face"]
         # render and compare (the targets the scores miss, refined on the landmarks) gains on both heads
-        assert scores["keyshape"]["face"] < scores["keyshape, --no-refine"]["face"] - 2
+        assert scores["keyshape"]["face"] < scores["keyshape, --no-refine"]["face"] - 3
         assert scores["keyshape"]["upper"] < scores["keyshape, --no-refine"]["upper"] - 3
         assert scores["oracle (signed + constant)"]["face"] < 15
         assert scores["mediapipe"]["face"] < 45

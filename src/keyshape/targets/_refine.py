@@ -34,8 +34,8 @@ are also fitted on the landmarks of every frame at once (:func:`fit_in_landmarks
 weights carry each frame's evidence to the rows directly, no per-frame bounds), and the two are
 averaged: they err differently, and half and half beats either. The result replaces the targets'
 rows of the mapping: the character is still driven by the key weights alone, as the paper's
-method has it. Measured on the rendered loop (BENCHMARKS.md, issue 13): ICT 22.3 % → 17.8 %,
-the caricature 22.5 % → 17.5 % (MediaPipe's own scores: 35.1 % and 34.3 %).
+method has it. Measured on the rendered loop (BENCHMARKS.md, issue 13): ICT 22.3 % → 18.2 %,
+the caricature 22.5 % → 17.8 % (MediaPipe's own scores: 35.1 % and 34.3 %: 0.52× on both).
 
 References
 ----------
@@ -212,7 +212,7 @@ def fit_in_landmarks(video, base, raised, route: np.ndarray, key_weights: np.nda
     ``d̄ = Σ_t tr(J̃ᵀJ̃) / n`` with ``J̃ = Π_t J(t)``, a target's information summed over the frames (so
     ``λ`` has no unit: a gain is shrunk by about ``v / (v + λ)`` for a key weight of variance ``v``;
     on the rendered loop, blended as :func:`refine_mapping` does, λ = 0.1–0.3 give 17.8–17.9 % on ICT
-    and 17.5 % on the caricature, λ = 0.01 18.2 % and 17.9 %). One linear system of
+    and 17.5 % on the caricature, λ = 0.01 18.2 % and 17.9 %, on renders of the loop). One linear system of
     ``n (n_keys + 1)`` unknowns, no per-frame bounds: the key weights carry the evidence of every
     frame to the mapping directly, where :func:`solve_corrections` estimates each frame alone.
 
@@ -298,8 +298,9 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
         The mapping rows are ``blend`` times :func:`fit_in_landmarks`'s plus ``1 − blend`` times
         those of the per-frame estimates (:func:`solve_corrections`, smoothed, then
         :func:`fit_through_keys`). The two err differently (the first unbounded, over the whole take;
-        the second bounded to [0, 1] frame by frame): on the rendered loop, face area, ICT / caricature,
-        18.5 / 17.8 % alone, 18.7 / 18.3 % alone, 17.8 / 17.5 % blended half and half (0.4–0.6: ±0.1).
+        the second bounded to [0, 1] frame by frame): on renders of the rendered loop, face area,
+        ICT / caricature, 18.5 / 17.8 % and 18.7 / 18.3 % alone, 17.9 / 17.5 % blended half and half
+        (0.4 or 0.6: ±0.1). 0: the per-frame fit alone.
     size : int, keyword-only
         Side of the renders, pixels.
     progress : bool, keyword-only
