@@ -196,3 +196,18 @@ def test_render_and_compare_finds_a_jaw_the_scores_missed(tmp_path):
     assert 0.3 * gain < blended.matrix[0, 0] < gain
     assert blended.offset[0] + blended.matrix[0, 0] * key.mean() == pytest.approx(
         offset + gain * key.mean(), abs=0.05)
+
+
+def test_the_report_reads_what_render_and_compare_did(tmp_path):
+    from keyshape.report._take import _refinement, _refinement_note
+
+    path = tmp_path / "map.json"
+    assert _refinement(path) is None  # no file
+    path.write_text('{"format": "keyshape-map", "gains": {}}')
+    assert _refinement(path) is None  # no entry
+    path.write_text('{"format": "keyshape-map", "gains": {}, "refined": {"targets": ["jawOpen"], '
+                    '"residual_px": [1.21, 1.05]}}')
+    note = _refinement_note(_refinement(path))
+    assert "jawOpen" in note and "1.21 px → 1.05 px" in note
+    path.write_text('{"refined": {"targets": [], "skipped": "no head pose"}}')
+    assert "skipped (no head pose)" in _refinement_note(_refinement(path))

@@ -97,30 +97,28 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
     return TakeExtras(report, movie, pictures, numbers)
 
 
-def _correspondence_quality(path: Path) -> dict | None:
-    """The ``quality`` of an automatic correspondence file beside the take (None without one)."""
+def _entry(path: Path, key: str):
+    """``key`` of the JSON object in ``path``; None when the file is missing or not such an object."""
     import json
 
     if not path.is_file():
         return None
     try:
-        quality = json.loads(path.read_text(encoding="utf-8")).get("quality")
+        return json.loads(path.read_text(encoding="utf-8")).get(key)
     except (OSError, ValueError, AttributeError):
         return None
+
+
+def _correspondence_quality(path: Path) -> dict | None:
+    """The ``quality`` of an automatic correspondence file beside the take (None without one)."""
+    quality = _entry(path, "quality")
     needed = ("landmarks_kept", "of", "moved", "median_residual_pct", "p95_residual_pct")
     return quality if isinstance(quality, dict) and all(k in quality for k in needed) else None
 
 
 def _refinement(path: Path) -> dict | None:
     """The ``refined`` entry of the automatic ``map.json`` beside the take (None without one)."""
-    import json
-
-    if not path.is_file():
-        return None
-    try:
-        refined = json.loads(path.read_text(encoding="utf-8")).get("refined")
-    except (OSError, ValueError, AttributeError):
-        return None
+    refined = _entry(path, "refined")
     return refined if isinstance(refined, dict) and isinstance(refined.get("targets"), list) else None
 
 
