@@ -311,8 +311,6 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
         Unchanged mapping (and a ``reason``) when the rig has none of the targets, the take has
         no head matrices, or MediaPipe finds the rendered face in too few frames.
     """
-    from scipy.ndimage import gaussian_filter1d
-
     from ..schemes import stable_points
 
     found = refinable_targets(rig.names)
@@ -334,14 +332,12 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
     base, raised = tracks
     corrections, rms = solve_corrections(track.points[..., :2], base, raised, route[:, indices], delta=delta,
                                          ridge=ridge, stable=stable_points(478))
-    refined = route[:, indices] + corrections
+    refined = route[:, indices] + corrections  # NaN on the frames not seen
     seen = np.isfinite(refined).all(axis=1)
     if seen.sum() < 2 * (mapping.n_keys + 1):
         return Refinement(mapping, reason="too few frames with a face in both the take and the renders")
     if smooth:
-        filled = refined.copy()
-        filled[~seen] = np.nan
-        refined = _smooth_seen(filled, seen, smooth, gaussian_filter1d)
+        refined = _smooth_seen(refined, seen, smooth)
     columns = [weights.names.index(k) for k in mapping.sources]
     per_frame = fit_through_keys(refined, weights.values[:, columns])
     at_once = fit_in_landmarks(track.points[..., :2], base, raised, route[:, indices], weights.values[:, columns],
@@ -355,8 +351,10 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
     return Refinement(refined_mapping, tuple(found), rms)
 
 
-def _smooth_seen(values: np.ndarray, seen: np.ndarray, sigma: float, gaussian_filter1d) -> np.ndarray:
+def _smooth_seen(values: np.ndarray, seen: np.ndarray, sigma: float) -> np.ndarray:
     """``values (n_frames, n)`` smoothed over time on the frames ``seen`` (normalised convolution)."""
+    from scipy.ndimage import gaussian_filter1d
+
     filled = np.where(seen[:, None], values, 0.0)
     mass = gaussian_filter1d(seen.astype(float), sigma, mode="nearest")
     out = gaussian_filter1d(filled, sigma, axis=0, mode="nearest") / np.maximum(mass, 1e-9)[:, None]
@@ -418,11 +416,11 @@ def _render_and_track(rig: Rig, corr: Correspondence, track: Track, route: np.nd
     turns = _head_turns(track.head_matrix) @ front  # (n_frames, 3, 3)
     camera = frame_points((points - pivot) @ front.T, margin=1.6)
     fps = track.fps if track.fps and np.isfinite(track.fps) else 30.0
-    passes = [("base", route)]
+    passes = [route]  # the route, then each target raised
     for t in indices:
         lifted = route.copy()
         lifted[:, t] = np.clip(lifted[:, t] + delta, 0, 1)
-        passes.append((str(rig.names[t]), lifted))
+        passes.append(lifted)
     bar = tqdm(total=2 * len(passes) * len(route), desc="render and compare", unit="frame",
                disable=None if progress else True)
     results = []
@@ -430,7 +428,7 @@ def _render_and_track(rig: Rig, corr: Correspondence, track: Track, route: np.nd
         with tempfile.TemporaryDirectory(prefix="keyshape-refine-") as scratch, \
                 make_renderer(faces, size, size, n_vertices=rig.n_vertices, backend="auto",
                               colours=shown) as renderer:
-            for _, pose in passes:
+            for pose in passes:
                 path = Path(scratch) / f"{len(results):02d}.mp4"
                 with VideoWriter(path, size, size, fps, crf=16) as out:
                     for f in range(len(pose)):
