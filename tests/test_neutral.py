@@ -67,7 +67,8 @@ def test_the_embedded_clip_neutral_smiles_least(real_track):
     assert real_track.blendshapes[frame, smile].sum() < real_track.blendshapes[median, smile].sum() - 0.3
     choice = explain_neutral(real_track, frame, stable=stable, scale=face_scale(real_track.points[frame])[0],
                              regions=regions)
-    assert choice.confidence == "low" and "never rest" in choice.reason
+    assert choice.confidence != "high" and "never rest" in choice.reason
+    assert not (real_track.visibility[frame] < 0.5).any()  # not a frame of the hand over the mouth (58-227)
     assert choice.activation < 0.6 * choice.median_activation
 
 

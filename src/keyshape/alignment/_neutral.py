@@ -37,12 +37,13 @@ def activation(track: Track) -> tuple[np.ndarray, tuple[int, ...]] | None:
 
 
 def whole_face_visible(track: Track, regions: dict | None) -> np.ndarray:
-    """(n_frames,) bool: a face, and no region (all landmarks if None) hidden."""
+    """(n_frames,) bool: a face, and no landmark of the regions (all landmarks if None) hidden
+    (visibility below 0.5: a hand over it)."""
     ok = track.valid.copy()
     if track.visibility is None:
         return ok
     for landmarks in (regions or {"face": np.arange(track.n_landmarks)}).values():
-        ok &= ~track.hidden(landmarks)
+        ok &= ~(track.visibility[:, np.asarray(landmarks)] < 0.5).any(axis=1)
     return ok
 
 

@@ -13,6 +13,8 @@ the smoothed weighted solve reads.
 
 from __future__ import annotations
 
+import dataclasses
+
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -45,7 +47,7 @@ class SolvedFile:
 
 def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = DEFAULT_SMOOTHNESS,
                      upper: float | None = DEFAULT_UPPER, convex: bool = False, max_bridge: float = 0.5,
-                     chunk: int = CHUNK) -> SolvedFile:
+                     chunk: int = CHUNK, visibility: str = "auto") -> SolvedFile:
     """The weights of a track file on ``keys``: :func:`solve_take`'s, without the take in memory.
 
     The points are streamed in chunks of ``chunk`` frames (:meth:`keyshape.io.track.TrackFile.chunks`).
@@ -54,17 +56,21 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
     ``Aᵀ V_t b_t``, ``b_tᵀ V_t b_t``: :class:`keyshape.decompose.GramTake` with ``weighted``),
     unless ``convex``: then its weighted solve needs the frames themselves, and it is loaded
     whole and goes through :func:`solve_take`, as a file that cannot be streamed (a landmark
-    CSV) does. Options as :func:`solve_take`'s.
+    CSV) does. Options as :func:`solve_take`'s; ``visibility="off"``: the track's visibility is
+    ignored (every landmark seen).
     """
     source = open_track(path)
     if source is not None and (source.n_landmarks != keys.n_landmarks or source.n_dims != keys.n_dims):
         raise InputError(f"the track has {source.n_landmarks} landmarks in {source.n_dims}D but the key set was "
                          f"made from {keys.n_landmarks} in {keys.n_dims}D")
-    weighted = source is not None and not _all_seen(source, GramTake(keys, 0).landmarks)
+    weighted = source is not None and visibility != "off" and not _all_seen(source, GramTake(keys, 0).landmarks)
     if source is None or (weighted and convex):
         from ._pipeline import solve_take  # with the key-shape search and tracking code: only this path needs it
 
-        solved = solve_take(load_track(path) if source is None else source.load(), keys, smoothness=smoothness,
+        track = load_track(path) if source is None else source.load()
+        if visibility == "off" and track.visibility is not None:
+            track = dataclasses.replace(track, visibility=None)
+        solved = solve_take(track, keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
     take = GramTake(keys, source.n_frames, weighted=weighted)

@@ -277,11 +277,8 @@ def _stitch(track_segment, spool_type, path, info, segments, spools, pts, kwargs
 
 
 def _join(spool_type, kept: list, folder: Path):
-    """One spool in ``folder`` holding the kept rows of every segment, in order; the frames'
-    patches (143 kB each) stay in the segments' files, which the joined spool reads."""
-    with spool_type(folder, patches=False) as joined:
-        if all(spool.keeps_patches for spool, _ in kept):
-            joined.pieces = [(spool.folder, row, spool.n_frames - row) for spool, row in kept]
+    """One spool in ``folder`` holding the kept rows of every segment, in order."""
+    with spool_type(folder) as joined:
         for spool, row in kept:
             arrays = spool.arrays()
             for lo in range(row, spool.n_frames, _CHUNK):
@@ -289,6 +286,7 @@ def _join(spool_type, kept: list, folder: Path):
                     fh.write(np.ascontiguousarray(arrays[name][lo:lo + _CHUNK]).tobytes())
             joined.n_frames += spool.n_frames - row
             joined.n_faces += int(np.isfinite(arrays["points"][row:, 0, 0]).sum())
+            joined.n_hands += int(np.isfinite(arrays["hands"][row:, :, 0, 0]).any(axis=1).sum())
             joined.most_seen = max(joined.most_seen, spool.most_seen)
             joined.index += spool.index[row:]
             joined.ms += spool.ms[row:]
@@ -305,7 +303,7 @@ def spool_parallel(path: Path, info: VideoInfo, track_segment, spool_type, *, st
     spool_type : ``keyshape.capture._spool.Spool``
     processes : :func:`start_workers`, one per segment after the first (this process tracks that
         one); the caller stops those not needed (:func:`stop_workers`)
-    kwargs : the tracker's settings (``options``, ``fps``, ``face``, ``one_euro``, ``patches``)
+    kwargs : the tracker's settings (``options``, ``fps``, ``face``, ``one_euro``, ``hands``)
     """
     workers = len(processes) + 1
     stop = min(end, info.n_frames) if end is not None and info.n_frames else info.n_frames

@@ -4,13 +4,13 @@
 inference) and tracks with MediaPipe's FaceLandmarker (``mediapipe.py``). A frame without a
 face becomes a NaN frame; a video with no face at all is an error. ``track_to_file`` does the
 same but streams the results to disk, so memory stays flat however long the video is. The
-landmarks' visibility comes from colour patches read around them as each frame is tracked
-(spooled to disk, ``_spool.py``: 143 kB a frame, e.g. 12 GB for an hour at 24 frames/s, next to
-the output; the video is decoded again instead when they would take over half the free space).
+landmarks' visibility comes from the hands MediaPipe's hand landmarker finds in each frame as it
+is tracked (``visibility.py``; spooled to disk with the rest, ``_spool.py``: 336 bytes a frame).
 """
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -20,10 +20,10 @@ import numpy as np
 
 from ..containers import Track
 from ..exceptions import InputError, InputWarning, NoFaceError
-from ._spool import N_LANDMARKS, N_SCORES, Spool, room_for_patches, spool_folder
-from .mediapipe import Detection, MediaPipeTracker, TrackerOptions, default_model_path
+from ._spool import N_LANDMARKS, N_SCORES, Spool, spool_folder
+from .mediapipe import Detection, HandTracker, MediaPipeTracker, TrackerOptions, default_model_path
 from .video import VideoInfo, iter_frames, prefetch, probe
-from .visibility import read_patches
+from .visibility import VISIBILITY_MODES
 
 __all__ = ["track_video", "track_to_file", "TrackerOptions", "MediaPipeTracker", "default_model_path",
            "probe", "iter_frames", "VideoInfo", "FaceFollower"]
@@ -77,7 +77,7 @@ class _Frame:
     index: int = 0  # the source frame number
     ms: int = 0  # its presentation time in milliseconds
     n_seen: int = 0  # faces the tracker saw in it (anyone's)
-    patches: np.ndarray | None = None  # (478, 25, 3) float32 around the points, for the visibility (None: no face)
+    hands: np.ndarray | None = None  # (2, 21, 2) float32 pixels, the hands found (NaN rows; None: not looked for)
 
 
 def _nan_frame(index: int = 0, ms: int = 0, n_seen: int = 0) -> _Frame:
@@ -88,7 +88,7 @@ def _nan_frame(index: int = 0, ms: int = 0, n_seen: int = 0) -> _Frame:
 def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, start: int,
             end: int | None, fps: float | None, face: int, progress: bool,
             one_euro: dict | None = None, follower: FaceFollower | None = None,
-            pts: np.ndarray | None = None, patches: bool = True) -> Iterator[_Frame]:
+            pts: np.ndarray | None = None, hands: bool = True) -> Iterator[_Frame]:
     from tqdm import tqdm
 
     from .filters import OneEuro
@@ -100,7 +100,7 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
                                  options.min_tracking_confidence, options.min_presence_confidence)
     total = (min(end, info.n_frames) if end is not None and info.n_frames else end or info.n_frames) - start
     follower = follower or FaceFollower(face)
-    with MediaPipeTracker(options) as tracker:
+    with MediaPipeTracker(options) as tracker, (HandTracker() if hands else contextlib.nullcontext()) as hand_tracker:
         source = prefetch(iter_frames(path, start=start, end=end, fps=fps, pts=pts))
         # disable=None: a bar only when stderr is a terminal, never in a log
         for index, (ms, rgb) in enumerate(tqdm(source, total=total if total > 0 else None, unit="frame",
@@ -114,9 +114,9 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
                 yield _nan_frame(index, ms, len(faces))
             else:
                 points = (smooth(chosen.points) if smooth is not None else chosen.points).astype(np.float32)
-                # the patches are read here, from the frame being tracked: no second decode for them
+                # the hands are looked for here, in the frame being tracked: no second decode for them
                 yield _Frame(points, chosen.scores.astype(np.float32), chosen.matrix.astype(np.float32),
-                             index, ms, len(faces), read_patches(rgb, points) if patches else None)
+                             index, ms, len(faces), hand_tracker.detect(rgb, ms) if hands else None)
 
 
 def _check_range(start: int, end: int | None) -> None:
@@ -139,8 +139,10 @@ def _probe(path: Path, fps: float | None, start: int) -> VideoInfo:
 
 
 def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
-           one_euro: dict | None = None, workers: int | None = 1) -> tuple[Spool, VideoInfo]:
+           one_euro: dict | None = None, workers: int | None = 1, visibility: str = "auto") -> tuple[Spool, VideoInfo]:
     _check_range(start, end)
+    if visibility not in VISIBILITY_MODES:
+        raise InputError(f"visibility must be one of {', '.join(VISIBILITY_MODES)}; got {visibility!r}")
     if fps is not None and not (np.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a finite number > 0; got {fps!r}")
     path = Path(path)
@@ -152,7 +154,7 @@ def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
     try:
         info = _probe(path, fps, start)
         settings = {"options": options, "fps": fps, "face": face, "one_euro": one_euro,
-                    "patches": room_for_patches(folder, _n_wanted(info, start, end))}
+                    "hands": visibility == "auto"}
         if processes:  # None: too short to split
             spool = spool_parallel(path, info, _track_segment, Spool, start=start, end=end, progress=progress,
                                    folder=folder, processes=processes, **settings)
@@ -160,7 +162,7 @@ def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
         if processes:
             stop_workers(processes)
     if spool is None:
-        with Spool(folder, patches=settings["patches"]) as spool:
+        with Spool(folder) as spool:
             for frame in _frames(path, info, start=start, end=end, progress=progress, **settings):
                 spool.append(frame)
     if spool.n_frames == 0:
@@ -178,17 +180,12 @@ def _track_segment(path: Path, info: VideoInfo, first: int, end: int, folder: Pa
     Returns the spool's counters and clock."""
     follower = FaceFollower(kwargs["face"])
     vars(follower).update(seed or {})
-    with Spool(folder, patches=kwargs["patches"]) as spool:
+    with Spool(folder) as spool:
         for frame in _frames(path, info, start=first, end=end, progress=False, follower=follower, pts=pts,
                              **kwargs):
             spool.append(frame)
     return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "most_seen": spool.most_seen,
-            "index": spool.index, "ms": spool.ms, "keeps_patches": spool.keeps_patches}
-
-
-def _n_wanted(info: VideoInfo, start: int, end: int | None) -> int:
-    """Frames ``start <= i < end`` by the container's count (0: unknown)."""
-    return max(0, (min(end, info.n_frames) if end is not None and info.n_frames else info.n_frames) - start)
+            "n_hands": spool.n_hands, "index": spool.index, "ms": spool.ms}
 
 
 def _no_face_message(path: Path, spool: Spool, face: int) -> str:
@@ -210,23 +207,20 @@ def _warn_if_truncated(path: Path, info: VideoInfo, decoded: int, end: int | Non
                       InputWarning, stacklevel=3)
 
 
-def _visibility(spool: Spool, points: np.ndarray, path, start: int, end: int | None,
-                fps: float | None) -> np.ndarray:
-    """(n_frames, n_landmarks) visibility of the tracked landmarks (:mod:`.visibility`), from the
-    patches read while tracking: the numbers :func:`~.visibility.estimate_visibility` gets from
-    two more decodes of the video, which it does when the disk had no room for the patches."""
-    from .visibility import estimate_visibility, sample_frames, visibility_from_patches
+def _visibility(spool: Spool, points: np.ndarray) -> np.ndarray | None:
+    """(n_frames, n_landmarks) visibility of the tracked landmarks from the hands found while
+    tracking (:func:`~.visibility.visibility_from_hands`); None when no hand covered the face."""
+    from .visibility import visibility_from_hands
 
-    patches = spool.patches()
-    if patches is None:
-        return estimate_visibility(path, points, start=start, end=end, fps=fps)
-    sample = sample_frames(points)
-    return visibility_from_patches(patches[sample], patches, points, sample=sample)
+    if spool.n_hands == 0:
+        return None
+    return visibility_from_hands(points, spool.arrays()["hands"])
 
 
 def track_video(path: str | Path, *, options: TrackerOptions | None = None, start: int = 0,
                 end: int | None = None, fps: float | None = None, face: int = 0,
-                one_euro: dict | None = None, progress: bool = True, workers: int | None = 1) -> Track:
+                one_euro: dict | None = None, progress: bool = True, workers: int | None = 1,
+                visibility: str = "auto") -> Track:
     """Track one face in every frame of a video file or a folder of images.
 
     Parameters
@@ -243,13 +237,15 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
     workers : processes tracking overlapping segments of the video in parallel, each with its
         own landmarker (1, the default: this process only; None: one per core). Short inputs
         use fewer. See :mod:`keyshape.capture._parallel`.
+    visibility : "auto" (default): MediaPipe's hand landmarker looks for hands in every frame
+        with a face, and the landmarks a hand covers get visibility 0
+        (:mod:`~keyshape.capture.visibility`); "off": no hands looked for, no visibility.
 
     Returns
     -------
     Track with points (n_frames, 478, 3) in pixels (z on the x scale), NaN where no face;
     blendshapes (n_frames, 52) ARKit-style scores; head_matrix (n_frames, 4, 4); visibility
-    (n_frames, 478) in [0, 1] (:mod:`~keyshape.capture.visibility`), from colour patches read as
-    each frame is tracked and spooled to a temporary folder meanwhile (143 kB a frame).
+    (n_frames, 478) in {0, 1} where a hand covered the face in some frame, else None (all seen).
 
     Raises
     ------
@@ -257,19 +253,21 @@ def track_video(path: str | Path, *, options: TrackerOptions | None = None, star
     """
     with spool_folder() as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=tmp, one_euro=one_euro, workers=workers)
+                             progress=progress, folder=tmp, one_euro=one_euro, workers=workers,
+                             visibility=visibility)
         arrays = spool.arrays()
         clock = spool.clock()
         track = Track(arrays["points"], info.fps, (info.width, info.height), arrays["scores"],
                       _blendshape_names(), arrays["matrix"], clock["frame_index"], clock["time"],
-                      _visibility(spool, arrays["points"], path, start, end, fps))
+                      _visibility(spool, arrays["points"]))
         del arrays
     return track
 
 
 def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptions | None = None,
                   start: int = 0, end: int | None = None, fps: float | None = None, face: int = 0,
-                  one_euro: dict | None = None, progress: bool = True, workers: int | None = 1) -> dict:
+                  one_euro: dict | None = None, progress: bool = True, workers: int | None = 1,
+                  visibility: str = "auto") -> dict:
     """Track a video straight into a track file; memory use does not grow with its length.
 
     Same parameters as :func:`track_video`. Returns a summary dict: ``n_frames``,
@@ -281,12 +279,13 @@ def track_to_file(path: str | Path, output: str | Path, *, options: TrackerOptio
     spool_dir = output.parent if output.parent.exists() else None
     with spool_folder(spool_dir) as tmp:
         spool, info = _spool(path, options=options, start=start, end=end, fps=fps, face=face,
-                             progress=progress, folder=tmp, one_euro=one_euro, workers=workers)
+                             progress=progress, folder=tmp, one_euro=one_euro, workers=workers,
+                             visibility=visibility)
         arrays = spool.arrays()
         write_track_arrays(output, points=arrays["points"], fps=info.fps,
                            image_size=(info.width, info.height), blendshapes=arrays["scores"],
                            blendshape_names=_blendshape_names(), head_matrix=arrays["matrix"],
-                           visibility=_visibility(spool, arrays["points"], path, start, end, fps),
+                           visibility=_visibility(spool, arrays["points"]),
                            **spool.clock())
         del arrays
     return {"n_frames": spool.n_frames, "n_faces": spool.n_faces, "fps": info.fps,

@@ -23,7 +23,7 @@ import numpy as np
 from ..exceptions import MissingDependencyError
 
 __all__ = ["TrackerOptions", "MediaPipeTracker", "Detection", "default_model_path", "BLENDSHAPE_NAMES", "preload",
-           "defer_unused_imports"]
+           "defer_unused_imports", "HandTracker", "default_hand_model_path", "MAX_HANDS", "N_HAND_POINTS"]
 
 # The 52 scores of the face blendshapes model, in its output order (ARKit names plus "_neutral").
 BLENDSHAPE_NAMES = (
@@ -41,11 +41,20 @@ BLENDSHAPE_NAMES = (
 )
 
 MODEL_SHA256 = "64184e229b263107bc2b804c6625db1341ff2bb731874b0bcc2fe6544e0bc9ff"
+HAND_MODEL_SHA256 = "1c73bdac1ed829cbbe9c03c932318794585d5bed7a920eabf2795268ae0d1e6b"
+MAX_HANDS = 2  # hands looked for in a frame: an actor's two
+N_HAND_POINTS = 21  # MediaPipe's hand landmarks: the wrist, then four per finger from the thumb
 
 
 def default_model_path() -> Path:
     """Path of the vendored ``face_landmarker.task``."""
     return Path(str(resources.files("keyshape").joinpath("data/face_landmarker.task")))
+
+
+def default_hand_model_path() -> Path:
+    """Path of the vendored ``hand_landmarker.task`` (MediaPipe's palm detector and hand landmark
+    model, ``tools/make_hand_model.py``)."""
+    return Path(str(resources.files("keyshape").joinpath("data/hand_landmarker.task")))
 
 
 @dataclass(frozen=True)
@@ -154,7 +163,7 @@ class MediaPipeTracker:
     def __exit__(self, *exc) -> None:
         landmarker, self._landmarker = self._landmarker, None
         if landmarker is not None:
-            with _signals_held():
+            with _quiet_native_stderr(), _signals_held():  # LiteRT logs its accelerators' teardown
                 landmarker.close()
 
     def detect(self, rgb: np.ndarray, timestamp_ms: int) -> list[Detection]:
@@ -176,6 +185,60 @@ class MediaPipeTracker:
             matrix = np.asarray(mats[i], dtype=float) if mats else np.full((4, 4), np.nan)
             faces.append(Detection(pts, scores, matrix))
         return faces
+
+
+class HandTracker:
+    """Context manager around MediaPipe's ``HandLandmarker`` in VIDEO mode: the hands in a frame,
+    the evidence of an occluder that :mod:`keyshape.capture.visibility` uses.
+
+    ``detect(rgb, timestamp_ms)`` returns ``(MAX_HANDS, N_HAND_POINTS, 2)`` float32 pixels, the
+    rows of hands not found NaN. The confidences are MediaPipe's defaults (0.5): a palm is
+    detected, then followed from frame to frame while its landmark model says a hand is there.
+    """
+
+    def __init__(self, model_path: Path | None = None):
+        self.model_path = Path(model_path or default_hand_model_path())
+        self._landmarker = None
+
+    def __enter__(self) -> Self:
+        _quiet_logs()
+        try:
+            with _signals_held():
+                from mediapipe.tasks.python import BaseOptions, vision
+        except ImportError:
+            raise MissingDependencyError("mediapipe") from None
+        self._mp_image = _image_factory()
+        try:
+            with _quiet_native_stderr(), _signals_held():
+                self._landmarker = vision.HandLandmarker.create_from_options(vision.HandLandmarkerOptions(
+                    base_options=BaseOptions(model_asset_path=str(self.model_path)),
+                    running_mode=vision.RunningMode.VIDEO, num_hands=MAX_HANDS))
+        except BaseException:
+            self.__exit__()
+            raise
+        self._calls = 0
+        self._last_ms = -1
+        return self
+
+    def __exit__(self, *exc) -> None:
+        landmarker, self._landmarker = self._landmarker, None
+        if landmarker is not None:
+            with _quiet_native_stderr(), _signals_held():  # LiteRT logs its accelerators' teardown
+                landmarker.close()
+
+    def detect(self, rgb: np.ndarray, timestamp_ms: int) -> np.ndarray:
+        """The hands in one RGB frame ``(height, width, 3) uint8`` -> ``(MAX_HANDS, 21, 2)`` float32."""
+        height, width = rgb.shape[:2]
+        ms = max(int(timestamp_ms), self._last_ms + 1)  # VIDEO mode wants increasing times
+        self._last_ms = ms
+        quiet = _quiet_native_stderr() if self._calls < 2 else contextlib.nullcontext()
+        with quiet:
+            result = self._landmarker.detect_for_video(self._mp_image(rgb), ms)
+        self._calls += 1
+        hands = np.full((MAX_HANDS, N_HAND_POINTS, 2), np.nan, np.float32)
+        for k, landmarks in enumerate(result.hand_landmarks[:MAX_HANDS]):
+            hands[k] = np.array([(p.x, p.y) for p in landmarks], dtype=np.float32) * (width, height)
+        return hands
 
 
 @contextlib.contextmanager

@@ -100,6 +100,24 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
                         "its own landmarker (default: one per core; 1 = one process)")
 
 
+def add_visibility_option(p: argparse.ArgumentParser) -> None:
+    """``--visibility auto|off``: whether the landmarks a hand covers count as hidden."""
+    p.add_argument("--visibility", choices=("auto", "off"), default="auto",
+                   help="landmarks covered by a hand: auto (default) = MediaPipe's hand landmarker finds the hands "
+                        "in front of the face and the landmarks they cover count as hidden (no key from such a "
+                        "frame, no part in the neutral, the fit and the solve); anything else, an expression, a "
+                        "turn or the light, is never taken for an occluder; off = every landmark counts as seen")
+
+
+def without_visibility(track, args):
+    """``track`` with its visibility dropped under ``--visibility off`` (else as it is)."""
+    if getattr(args, "visibility", "auto") == "off" and track.visibility is not None:
+        import dataclasses
+
+        return dataclasses.replace(track, visibility=None)
+    return track
+
+
 def add_solve_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--smooth", type=non_negative, default=DEFAULT_SMOOTHNESS, metavar="LAMBDA",
                    help=f"temporal smoothness, solved over the whole take with no lag (default "
@@ -154,7 +172,8 @@ def solve_kwargs(args) -> dict:
 
 def capture_kwargs(args) -> dict:
     return {"start": args.start, "end": args.end, "fps": args.fps, "face": args.face,
-            "one_euro": _one_euro(args.one_euro), "workers": args.workers}
+            "one_euro": _one_euro(args.one_euro), "workers": args.workers,
+            "visibility": getattr(args, "visibility", "auto")}
 
 
 def _one_euro(text: str | None) -> dict | None:

@@ -38,7 +38,7 @@ def _workers(text: str) -> int:
 
 
 def add_arguments(p) -> None:
-    from ._options import add_key_options, add_solve_options
+    from ._options import add_key_options, add_solve_options, add_visibility_option
 
     p.add_argument("takes", type=Path, nargs="+", metavar="TAKE",
                    help="video files and/or folders of videos")
@@ -55,6 +55,7 @@ def add_arguments(p) -> None:
                            "(OUTDIR/keys.json) and solve every take against it")
     add_key_options(p)
     add_solve_options(p)
+    add_visibility_option(p)
     where = p.add_mutually_exclusive_group()
     where.add_argument("--address", default=None, metavar="HOST:PORT",
                        help="join a running Ray cluster (the address `ray start --head` prints); "
@@ -80,7 +81,8 @@ def run(args) -> None:
     options = RunOptions(rig=args.rig, mapping=args.map, keys=args.keys, regions=args.regions,
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          mirror=args.mirror, neutral=args.neutral, preview=not args.no_preview,
-                         formats=tuple(args.formats), **solve_kwargs(args))
+                         formats=tuple(args.formats), capture={"visibility": args.visibility},
+                         **solve_kwargs(args))
     runner = make_runner(sequential=args.sequential, workers=args.workers, address=args.address)
     if not args.quiet and runner.name == "sequential" and not args.sequential:
         print("keyshape: Ray is not installed; running the takes one after the other "

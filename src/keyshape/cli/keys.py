@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ._options import add_key_options, describe_keys, progress, say
+from ._options import add_key_options, add_visibility_option, describe_keys, progress, say, without_visibility
 
 DESCRIPTION = ("Choose K real frames per face region that span the performance (the key shapes an artist "
                "will sculpt on the character), plus the mirror image of each key where it reaches what the "
@@ -26,6 +26,7 @@ def add_arguments(p) -> None:
                         "frame); the fewest frames of the takes that bring each region's RMS error below "
                         "--max-error are added (at most 24 per region), named after the region's last key")
     add_key_options(p)
+    add_visibility_option(p)
 
 
 def _load(path: Path, args):
@@ -36,8 +37,8 @@ def _load(path: Path, args):
         from ..capture import track_video
 
         say(args, f"{path.name}: tracking")
-        return track_video(path, progress=progress(args))
-    return load_track(path)
+        return track_video(path, progress=progress(args), visibility=args.visibility)
+    return without_visibility(load_track(path), args)
 
 
 def run(args) -> None:

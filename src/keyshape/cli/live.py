@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from ._argtypes import positive, weight_bound
-from ._options import add_correspondence_option
+from ._options import add_correspondence_option, add_visibility_option
 
 DESCRIPTION = """\
 Track a camera live and send every frame's weights, as they are solved, to any mix of
@@ -95,6 +95,7 @@ def add_arguments(p) -> None:
     p.add_argument("--input-format", default=None, metavar="FMT",
                    help="PyAV/FFmpeg input format for SOURCE (v4l2, avfoundation, dshow, lavfi, ...)")
     p.add_argument("--duration", type=positive, default=None, metavar="SECONDS", help="stop after SECONDS")
+    add_visibility_option(p)  # in the --record take: the hands looked for in each frame (12-15 ms a frame)
 
 
 def check(parser, args) -> None:
@@ -153,7 +154,8 @@ def _session(args, source, keys):
     if args.record:
         outputs.append(Recorder(args.record, keys, fps=source.fps, image_size=source.size, rig=targets.rig,
                                 mapping=None if targets.builtin else targets.mapping,
-                                source=source.spec, blendshape_names=BLENDSHAPE_NAMES, builtin=targets.builtin))
+                                source=source.spec, blendshape_names=BLENDSHAPE_NAMES, builtin=targets.builtin,
+                                visibility=args.visibility))
     if args.view:
         from ..viewer.live import LiveView
 

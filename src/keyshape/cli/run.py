@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ._options import (
     add_capture_options,
+    add_visibility_option,
     add_correspondence_option,
     add_key_options,
     add_normalize_option,
@@ -44,6 +45,7 @@ def add_arguments(p) -> None:
                         "refined on the landmarks; one more tracking pass per target, about 9). Faster, "
                         "and those targets follow MediaPipe's scores alone")
     add_capture_options(p)
+    add_visibility_option(p)
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     add_key_options(p)
     add_solve_options(p)

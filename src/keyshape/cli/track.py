@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ._options import add_capture_options, capture_kwargs, progress, say
+from ._options import add_capture_options, add_visibility_option, capture_kwargs, progress, say
 
 DESCRIPTION = ("Track the face in every frame of VIDEO with MediaPipe's FaceLandmarker (vendored model). "
                "Writes points (pixels), fps, the 52 ARKit-style scores and the head matrix to TRACK.npz; "
-               "frames without a face are NaN.")
+               "frames without a face are NaN. MediaPipe's hand landmarker looks for hands in every frame: "
+               "the landmarks a hand covers are written as hidden (visibility 0; --visibility off: none).")
 
 
 def add_arguments(p) -> None:
@@ -16,6 +17,7 @@ def add_arguments(p) -> None:
                                             "is honoured) or a folder of images")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="TRACK.npz")
     add_capture_options(p)
+    add_visibility_option(p)
 
 
 def run(args) -> None:

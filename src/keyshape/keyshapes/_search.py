@@ -284,17 +284,17 @@ def candidate_frames(aligned: Track, neutral_frame: int) -> np.ndarray:
 
 
 def visible_frames(aligned: Track, candidates: np.ndarray, landmarks, *, at_least: int = 0) -> np.ndarray:
-    """The ``candidates`` (n_candidates,) int in which the region of ``landmarks`` is not hidden.
+    """The ``candidates`` (n_candidates,) int in which no landmark of the region of ``landmarks`` is hidden.
 
-    A region is hidden in a frame when more than ``containers.HIDDEN_SHARE`` of its landmarks have a
-    visibility below 0.5 (:meth:`keyshape.containers.Track.hidden`: a hand over the mouth or an
-    eye): a key is a real frame of the region, never the tracker's guess under a hand. Tracks
-    without visibility keep every candidate. When fewer than ``at_least`` frames show the region
-    (a short take asked for many keys), the least hidden frames make up the count.
+    A landmark is hidden when its visibility is below 0.5 (a hand over it,
+    :mod:`keyshape.capture.visibility`): a key is a real frame of the region, never the tracker's
+    guess under a hand, not even of one eye of the upper face. Tracks without visibility keep every
+    candidate. When fewer than ``at_least`` frames show the region whole (a short take asked for
+    many keys), the least hidden frames make up the count.
     """
     if aligned.visibility is None:
         return candidates
-    hidden = aligned.hidden(landmarks)[candidates]
+    hidden = (aligned.visibility[np.ix_(candidates, np.asarray(landmarks))] < 0.5).any(axis=1)
     if (~hidden).sum() >= max(at_least, 1):
         return candidates[~hidden]
     # too few frames show the region (a short take): the least hidden ones make up the count

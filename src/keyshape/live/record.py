@@ -6,8 +6,8 @@ track keeps the source's timing. When the session ends — the source ended or f
 SIGTERM — the spool becomes, in ``DIR``:
 
 * ``track.npz`` — MediaPipe's landmarks, scores and head matrices of every frame, and the
-  landmarks' visibility (a hand over the mouth: :mod:`keyshape.capture.visibility`, from colour
-  patches read around the landmarks of each frame as it comes and scored when the session ends);
+  landmarks' visibility (a hand over the mouth: :mod:`keyshape.capture.visibility`, from the hands
+  MediaPipe's hand landmarker finds in each frame as it comes; ``visibility="off"``: none);
 * ``keys.json`` — the key set used (the calibrated one with ``--calibrate``);
 * ``weights.csv`` — the key weights as they were sent live (causal, smoothed);
 * ``animation.glb`` — the character driven by those weights, with the head and eye rotations;
@@ -26,12 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from ..containers import KeyShapes, Rig, Track, Weights
+from ..capture.mediapipe import MAX_HANDS, N_HAND_POINTS
 from .frame import LiveFrame
 
 __all__ = ["Recorder", "RECORD_FILES"]
 
 RECORD_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
 _NAN = np.float32(np.nan)
+HANDS_SHAPE = (MAX_HANDS, N_HAND_POINTS, 2)  # a frame's hands in the spool
 
 
 class Recorder:
@@ -48,10 +50,13 @@ class Recorder:
     builtin : bool
         Whether ``rig`` is keyshape's stylised head (:func:`keyshape.live.live_targets`' ``builtin``):
         the animation then gets its colours and its eyes turned by the gaze, as ``keyshape run``'s.
+    visibility : "auto" (default): the hands in each frame with a face are looked for (12-15 ms a
+        frame), and the landmarks they cover are hidden in ``track.npz``; "off": none looked for.
     """
 
     def __init__(self, folder, keys: KeyShapes, *, fps: float, image_size, rig: Rig | None = None,
-                 mapping=None, source=None, blendshape_names: tuple[str, ...] = (), builtin: bool = False):
+                 mapping=None, source=None, blendshape_names: tuple[str, ...] = (), builtin: bool = False,
+                 visibility: str = "auto"):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.keys, self.fps, self.image_size = keys, float(fps), tuple(image_size)
@@ -61,11 +66,14 @@ class Recorder:
         self._spool = Path(tempfile.mkdtemp(prefix=".live-spool-", dir=self.folder))
         self._stack = ExitStack()
         self._files = {name: self._stack.enter_context(open(self._spool / f"{name}.f32", "wb"))  # noqa: SIM115
-                       for name in ("points", "scores", "matrix", "weights")}
+                       for name in ("points", "scores", "matrix", "weights", "hands")}
         self._sizes = {"points": keys.n_landmarks * 3, "scores": len(blendshape_names) or 52,
-                       "matrix": 16, "weights": keys.n_keys}
-        self._patches = self._stack.enter_context(open(self._spool / "patches.u8", "wb"))  # noqa: SIM115
-        self._read: list[bool] = []  # per frame: whether its patches were read
+                       "matrix": 16, "weights": keys.n_keys, "hands": int(np.prod(HANDS_SHAPE))}
+        self._hands = None
+        if visibility == "auto":
+            from ..capture.mediapipe import HandTracker
+
+            self._hands = self._stack.enter_context(HandTracker())
         self.n_frames = 0
         self.files: tuple[Path, ...] = ()
 
@@ -84,52 +92,30 @@ class Recorder:
                 self._write(detection, keys)
 
     def _write(self, detection, keys, rgb=None) -> None:
-        parts = {"points": None, "scores": None, "matrix": None, "weights": keys}
+        parts = {"points": None, "scores": None, "matrix": None, "weights": keys, "hands": None}
         if detection is not None:
             parts.update(points=detection.points, scores=detection.scores, matrix=detection.matrix)
+            if self._hands is not None and rgb is not None:  # the hands in front of this frame's face
+                parts["hands"] = self._hands.detect(rgb, round(1000 * self.n_frames / self.fps))
         for name, fh in self._files.items():
             value = parts[name]
             size = self._sizes[name]
             if value is None or np.size(value) != size:
                 value = np.full(size, _NAN)
             fh.write(np.asarray(value, dtype=np.float32).tobytes())
-        self._write_patches(parts["points"], rgb)
         self.n_frames += 1
 
-    def _write_patches(self, points, rgb) -> None:
-        """The frame's colour patches around its landmarks, as uint8 (1-2 ms a frame, any frame size)."""
-        from ..capture.visibility import PATCH_GRID, read_patches
+    def _visibility(self, points: np.ndarray, hands: np.ndarray) -> np.ndarray | None:
+        """(n_frames, n_landmarks) visibility from the hands found (:func:`~keyshape.capture.visibility.
+        visibility_from_hands`); None when no hand covered the face."""
+        from ..capture.visibility import visibility_from_hands
 
-        read = points is not None and rgb is not None and np.size(points) == self._sizes["points"] \
-            and np.isfinite(points).all()
-        patches = np.zeros((self.keys.n_landmarks, PATCH_GRID ** 2, 3), np.uint8)
-        if read:
-            patches = np.round(read_patches(rgb, np.reshape(points, (-1, 3))) * 255).astype(np.uint8)
-        self._patches.write(patches.tobytes())
-        self._read.append(read)
-
-    def _visibility(self, points: np.ndarray) -> np.ndarray | None:
-        """(n_frames, n_landmarks) visibility from the spooled patches; None with no frame read."""
-        from ..capture.visibility import N_SAMPLE, PATCH_GRID, visibility_from_patches
-
-        read = np.array(self._read, bool)
-        if not read.any():
-            return None
-        patches = np.memmap(self._spool / "patches.u8", dtype=np.uint8, mode="r",
-                            shape=(self.n_frames, self.keys.n_landmarks, PATCH_GRID ** 2, 3))
-        frames = np.flatnonzero(read)
-        sample = frames[np.linspace(0, len(frames) - 1, min(N_SAMPLE, len(frames))).astype(int)]
-        return visibility_from_patches(_Unit(patches)[sample], _Unit(patches), points, unread=~read, sample=sample)
+        return visibility_from_hands(points, hands.reshape(len(hands), *HANDS_SHAPE))
 
     def _complete_frames(self) -> int:
         """The frames every spool file holds whole (SIGTERM may land between one file's write and
         the next's)."""
-        from ..capture.visibility import PATCH_GRID
-
         counts = [(self._spool / f"{name}.f32").stat().st_size // (4 * size) for name, size in self._sizes.items()]
-        patch = self.keys.n_landmarks * PATCH_GRID ** 2 * 3
-        counts += [(self._spool / "patches.u8").stat().st_size // patch, len(self._read)]
-        self._read = self._read[: min(counts)]
         return min(self.n_frames, *counts)
 
     def _arrays(self) -> dict[str, np.ndarray]:
@@ -156,7 +142,7 @@ class Recorder:
         names = self.blendshape_names or None
         points = arrays["points"].reshape(n, -1, 3)
         track = Track(points, self.fps, self.image_size, arrays["scores"] if names else None, names or (),
-                      arrays["matrix"].reshape(n, 4, 4), visibility=self._visibility(points))
+                      arrays["matrix"].reshape(n, 4, 4), visibility=self._visibility(points, arrays["hands"]))
         weights = Weights(arrays["weights"].astype(float), self.keys.names, self.fps)
         out = self.folder
         save_track(track, out / "track.npz")
@@ -184,13 +170,3 @@ class Recorder:
         if self.builtin and set(GAZE_NAMES) <= set(rig.names):  # the stylised head, as keyshape run writes it
             anim, colours = default_character_extras(anim, solved.gaze)
         export(anim, path, rig=rig, poses=solved.poses, eyes=eyes, colours=colours)
-
-
-class _Unit:
-    """uint8 patches ``(n_frames, ...)`` read, a slice at a time, as float32 in [0, 1] (as read_patches gives)."""
-
-    def __init__(self, patches: np.ndarray):
-        self.patches, self.shape = patches, patches.shape
-
-    def __getitem__(self, frames) -> np.ndarray:
-        return self.patches[frames].astype(np.float32) / np.float32(255.0)

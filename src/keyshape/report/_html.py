@@ -98,14 +98,16 @@ def _neutral_note(n: dict) -> str:
 
 
 def _hidden_note(n: dict) -> str:
-    """Frames whose region was hidden (a hand, the head turned away): no key was taken there and the solve
+    """Frames whose region was hidden by a hand: no key was taken there and the solve
     leaned on the smoothness across them."""
     hidden = {r: v for r, v in (n.get("hidden") or {}).items() if v["frames"]}
     if not hidden:
-        return ""
+        return ('<p class="note" id="hidden">Hidden: no frame. No hand was found over the face, so every '
+                "landmark of every frame counts as seen.</p>")
     text = ", ".join(f'{html.escape(r)} {v["frames"]} frames ({100 * v["share"]:.0f} %)' for r, v in hidden.items())
-    return (f'<p class="note" id="hidden">Hidden (more than 30 % of the landmarks below visibility 0.5): {text}. '
-            "No key comes from these frames; the solve weights hidden landmarks by their visibility and "
+    return (f'<p class="note" id="hidden">Hidden by a hand (MediaPipe\'s hand landmarker found one covering more '
+            f"than 30 % of the region's landmarks): {text}. "
+            "No key comes from these frames; the solve leaves the covered landmarks out and "
             "bridges fully hidden spans with the smoothness term (shaded in the weights plot).</p>")
 
 
