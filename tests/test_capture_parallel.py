@@ -83,15 +83,39 @@ def test_parallel_track_matches_the_sequential_one(demo_clip, real_track):
     error = np.linalg.norm(parallel.points[..., :2] - real_track.points[..., :2], axis=2).mean(axis=1) / iod
     assert np.nanmax(error) < 0.01 and np.nanmean(error) < 0.001  # tracking noise: about 1 % of the IOD
     assert np.nanmax(np.abs(parallel.blendshapes - real_track.blendshapes)) < 0.1
-    # the visibility: read from the patches each worker spooled, as two more decodes would give it
-    from keyshape.capture.visibility import estimate_visibility
+    _same_hands(parallel, real_track)
+
+
+def _same_hands(parallel, sequential):
+    """The hands found in each worker give the sequential visibility, within the tracking noise."""
     from keyshape.schemes import mediapipe_scheme
 
-    np.testing.assert_array_equal(parallel.visibility, estimate_visibility(demo_clip, parallel.points))
-    for part in ("lips", "right_eye", "left_eye"):  # and the sequential one's, within the tracking noise
+    assert np.array_equal((parallel.visibility < 1).any(axis=1), (sequential.visibility < 1).any(axis=1))
+    for part in ("lips", "right_eye", "left_eye"):
         region = np.array(mediapipe_scheme()["contours"][part])
-        seen, seen_1 = (t.visibility[:, region].mean(axis=1) for t in (parallel, real_track))
-        assert np.abs(seen - seen_1).max() < 0.2 and ((seen < 0.5) != (seen_1 < 0.5)).mean() < 0.03, part
+        hidden, hidden_1 = parallel.hidden(region), sequential.hidden(region)
+        assert (hidden != hidden_1).mean() < 0.02, part
+
+
+@pytest.mark.slow
+def test_a_hand_over_the_face_at_a_segment_start_is_followed_into_it(demo_clip, real_track):
+    """Three workers cut the clip at frames 166 and 320: the first cut falls while the hand covers the
+    mouth (58-227), where MediaPipe's palm detector would not find it anew; the hand is followed on
+    into the second segment as one process follows it."""
+    from keyshape.capture import track_video
+    from keyshape.capture._parallel import plan_segments
+
+    assert 58 < plan_segments(0, 472, 3, 12)[1].share < 227
+    parallel = track_video(demo_clip, progress=False, workers=3)
+    _same_hands(parallel, real_track)
+    lips = np.array(mediapipe_scheme_lips())
+    assert parallel.hidden(lips)[170:220].all()
+
+
+def mediapipe_scheme_lips():
+    from keyshape.schemes import mediapipe_scheme
+
+    return mediapipe_scheme()["contours"]["lips"]
 
 
 

@@ -15,7 +15,7 @@ from scipy.ndimage import gaussian_filter1d
 from .containers import Poses, Track, blend
 from .exceptions import InputError
 
-__all__ = ["Performance", "make_performance"]
+__all__ = ["Performance", "make_performance", "Occluder", "cut_out", "paste"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,3 +228,57 @@ def _rotation_matrices(angles: np.ndarray, n_dims: int) -> np.ndarray:
     rx = np.stack([[one, zero, zero], [zero, c[:, 0], -s[:, 0]], [zero, s[:, 0], c[:, 0]]])
     # i/j/k/l: dimension, f: frame
     return np.einsum("ijf,jkf,klf->fil", rz, ry, rx)
+
+
+@dataclass(frozen=True)
+class Occluder:
+    """A picture of an occluder cut out of a frame, to composite onto other takes at known places.
+
+    pixels : (h, w, 3) uint8
+    mask : (h, w) bool, the occluder's own pixels
+    anchor : (2,) float, the point of the picture (x, y) to place on the target (e.g. the
+        middle of the mouth it covered)
+    scale : float, the face size (pixels) it was cut at: pasted on a face of size s, it is
+        resized by s / scale
+    """
+
+    pixels: np.ndarray
+    mask: np.ndarray
+    anchor: np.ndarray
+    scale: float
+
+
+def cut_out(rgb: np.ndarray, mask: np.ndarray, anchor, scale: float) -> Occluder:
+    """The masked part of ``rgb`` (h, w, 3) uint8, ``mask`` (h, w) bool, cropped to its bounding box;
+    ``anchor`` (x, y) in ``rgb``'s pixels and ``scale`` as :class:`Occluder` says."""
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        raise ValueError("the mask is empty: nothing to cut out")
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    return Occluder(rgb[y0:y1, x0:x1].copy(), mask[y0:y1, x0:x1].copy(),
+                    np.asarray(anchor, float) - (x0, y0), float(scale))
+
+
+def paste(rgb: np.ndarray, occluder: Occluder, at, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``rgb`` (h, w, 3) uint8 with ``occluder`` composited so that its anchor lands on ``at`` (x, y),
+    resized (nearest pixel) by ``scale / occluder.scale``.
+
+    Returns the new picture (a copy) and its (h, w) bool mask of the pasted occluder's pixels: the
+    truth of what is covered.
+    """
+    factor = scale / occluder.scale
+    h, w = occluder.mask.shape
+    out_h, out_w = max(1, round(h * factor)), max(1, round(w * factor))
+    rows = np.minimum((np.arange(out_h) / factor).astype(int), h - 1)
+    cols = np.minimum((np.arange(out_w) / factor).astype(int), w - 1)
+    pixels, mask = occluder.pixels[np.ix_(rows, cols)], occluder.mask[np.ix_(rows, cols)]
+    top_left = np.round(np.asarray(at, float) - occluder.anchor * factor).astype(int)  # (x, y)
+    out, covered = rgb.copy(), np.zeros(rgb.shape[:2], bool)
+    y0, x0 = max(top_left[1], 0), max(top_left[0], 0)
+    y1, x1 = min(top_left[1] + out_h, rgb.shape[0]), min(top_left[0] + out_w, rgb.shape[1])
+    if y1 <= y0 or x1 <= x0:
+        return out, covered
+    part = mask[y0 - top_left[1]:y1 - top_left[1], x0 - top_left[0]:x1 - top_left[0]]
+    out[y0:y1, x0:x1][part] = pixels[y0 - top_left[1]:y1 - top_left[1], x0 - top_left[0]:x1 - top_left[0]][part]
+    covered[y0:y1, x0:x1] = part
+    return out, covered

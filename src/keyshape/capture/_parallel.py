@@ -276,6 +276,49 @@ def _stitch(track_segment, spool_type, path, info, segments, spools, pts, kwargs
     return kept
 
 
+def _carry_hands(path: Path, fps: float | None, pts: np.ndarray | None, kept: list) -> None:
+    """Hands that cross a segment's first frame, followed on into it as one process would.
+
+    MediaPipe's hand landmarker finds a hand over a face mostly by following it from where it came
+    into the picture (its palm detector seldom finds a hand already lying on a face), so a segment
+    that starts while a hand is over the face would miss it. Where the kept rows before a segment
+    end with a hand, its frames are looked at again from the frame that hand run began in (no
+    hand before it: a landmarker in the state a fresh one has), and the segment's hands rows
+    rewritten, until the new pass and the segment's own say no hand in the same frame (from there
+    on they agree). kept : (spool, first row kept) per segment, as :func:`_stitch` gives them.
+    """
+    from .mediapipe import HandTracker
+    from .video import iter_frames
+
+    for k in range(1, len(kept)):
+        (before, before_row), (spool, row) = kept[k - 1], kept[k]
+        hands_before = before.arrays()["hands"]
+        if not len(hands_before) or not np.isfinite(hands_before[-1, :, 0, 0]).any():
+            continue
+        entry = len(hands_before) - 1
+        while entry > before_row and np.isfinite(hands_before[entry - 1, :, 0, 0]).any():
+            entry -= 1
+        first = before.index[entry]
+        points, own = spool.arrays()["points"], spool.arrays()["hands"]
+        points_before = before.arrays()["points"]
+        boundary = spool.index[row]
+        with HandTracker() as tracker, open(spool.folder / "hands.f32", "r+b") as out:
+            for at, (ms, rgb) in enumerate(iter_frames(path, start=first, fps=fps, pts=pts), start=first):
+                r = row + at - boundary  # the segment's row of this frame (< row: the segment before's)
+                if r >= len(points):
+                    break
+                face = np.isfinite(points_before[entry + at - first, 0, 0] if r < row else points[r, 0, 0])
+                hands = tracker.detect(rgb, ms) if face else np.full(own.shape[1:], np.nan, np.float32)
+                if r < row:
+                    continue  # frames of the segment before: the same as it found
+                found, had = bool(np.isfinite(hands[:, 0, 0]).any()), bool(np.isfinite(own[r, :, 0, 0]).any())
+                if not found and not had:
+                    break
+                out.seek(r * hands.nbytes)
+                out.write(np.ascontiguousarray(hands, dtype=np.float32).tobytes())
+                spool.n_hands += int(found) - int(had)
+
+
 def _join(spool_type, kept: list, folder: Path):
     """One spool in ``folder`` holding the kept rows of every segment, in order."""
     with spool_type(folder) as joined:
@@ -321,4 +364,6 @@ def spool_parallel(path: Path, info: VideoInfo, track_segment, spool_type, *, st
     if any(spool.n_frames != s.end - s.first for spool, s in zip(spools, segments)):
         return None  # the video is shorter than it declares: one process finds where it ends
     kept = _stitch(track_segment, spool_type, path, info, segments, spools, pts, kwargs, folder)
+    if kwargs.get("hands"):
+        _carry_hands(path, kwargs.get("fps"), pts, kept)
     return _join(spool_type, kept, folder)
