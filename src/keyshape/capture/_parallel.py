@@ -307,8 +307,9 @@ def _carry_hands(path: Path, fps: float | None, pts: np.ndarray | None, kept: li
                 r = row + at - boundary  # the segment's row of this frame (< row: the segment before's)
                 if r >= len(points):
                     break
-                face = np.isfinite(points_before[entry + at - first, 0, 0] if r < row else points[r, 0, 0])
-                hands = tracker.detect(rgb, ms) if face else np.full(own.shape[1:], np.nan, np.float32)
+                face = points_before[entry + at - first] if r < row else points[r]
+                hands = tracker.detect(rgb, ms, face) if np.isfinite(face[0, 0]) else \
+                    np.full(own.shape[1:], np.nan, np.float32)
                 if r < row:
                     continue  # frames of the segment before: the same as it found
                 found, had = bool(np.isfinite(hands[:, 0, 0]).any()), bool(np.isfinite(own[r, :, 0, 0]).any())

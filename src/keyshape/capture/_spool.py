@@ -1,7 +1,7 @@
 """The tracker's spool: what each frame gave, appended to files on disk while a video is tracked.
 
 Flat memory however long the video is: landmarks, scores, head matrices and the hands found in
-front of the face (:mod:`~keyshape.capture.visibility`, 336 bytes a frame) are read back as
+front of the face (:mod:`~keyshape.capture.visibility`, 672 bytes a frame) are read back as
 memory maps.
 """
 
@@ -20,7 +20,7 @@ __all__ = ["N_LANDMARKS", "N_SCORES", "HANDS_SHAPE", "Spool", "spool_folder"]
 
 N_LANDMARKS = 478
 N_SCORES = 52
-HANDS_SHAPE = (2, 21, 2)  # a frame's hands (MediaPipe's MAX_HANDS, N_HAND_POINTS; xy pixels)
+HANDS_SHAPE = (4, 21, 2)  # a frame's hands (HandTracker's N_HANDS, N_HAND_POINTS; xy pixels)
 _NO_HANDS = np.full(HANDS_SHAPE, np.nan, np.float32)
 
 

@@ -5,7 +5,7 @@ inference) and tracks with MediaPipe's FaceLandmarker (``mediapipe.py``). A fram
 face becomes a NaN frame; a video with no face at all is an error. ``track_to_file`` does the
 same but streams the results to disk, so memory stays flat however long the video is. The
 landmarks' visibility comes from the hands MediaPipe's hand landmarker finds in each frame as it
-is tracked (``visibility.py``; spooled to disk with the rest, ``_spool.py``: 336 bytes a frame).
+is tracked (``visibility.py``; spooled to disk with the rest, ``_spool.py``: 672 bytes a frame).
 """
 
 from __future__ import annotations
@@ -116,7 +116,7 @@ def _frames(path: Path, info: VideoInfo, *, options: TrackerOptions | None, star
                 points = (smooth(chosen.points) if smooth is not None else chosen.points).astype(np.float32)
                 # the hands are looked for here, in the frame being tracked: no second decode for them
                 yield _Frame(points, chosen.scores.astype(np.float32), chosen.matrix.astype(np.float32),
-                             index, ms, len(faces), hand_tracker.detect(rgb, ms) if hands else None)
+                             index, ms, len(faces), hand_tracker.detect(rgb, ms, points) if hands else None)
 
 
 def _check_range(start: int, end: int | None) -> None:

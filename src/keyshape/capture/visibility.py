@@ -162,15 +162,15 @@ def estimate_visibility(path: str | Path, points: np.ndarray, *, start: int = 0,
     (:func:`visibility_from_hands`). Tracking finds the hands as it goes (``keyshape track``):
     this is for a track made without them.
     """
-    from .mediapipe import MAX_HANDS, N_HAND_POINTS, HandTracker
+    from .mediapipe import N_HAND_POINTS, N_HANDS, HandTracker
     from .video import iter_frames
 
     points = np.asarray(points)
-    hands = np.full((len(points), MAX_HANDS, N_HAND_POINTS, 2), np.nan, np.float32)
+    hands = np.full((len(points), N_HANDS, N_HAND_POINTS, 2), np.nan, np.float32)
     with HandTracker() as tracker:
         for i, (ms, rgb) in zip(range(len(points)), iter_frames(path, start=start, end=end, fps=fps)):
             if np.isfinite(points[i]).all():
-                hands[i] = tracker.detect(rgb, ms)
+                hands[i] = tracker.detect(rgb, ms, points[i])
     return visibility_from_hands(points, hands)
 
 

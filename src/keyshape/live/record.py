@@ -26,14 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from ..containers import KeyShapes, Rig, Track, Weights
-from ..capture.mediapipe import MAX_HANDS, N_HAND_POINTS
+from ..capture.mediapipe import N_HAND_POINTS, N_HANDS
 from .frame import LiveFrame
 
 __all__ = ["Recorder", "RECORD_FILES"]
 
 RECORD_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
 _NAN = np.float32(np.nan)
-HANDS_SHAPE = (MAX_HANDS, N_HAND_POINTS, 2)  # a frame's hands in the spool
+HANDS_SHAPE = (N_HANDS, N_HAND_POINTS, 2)  # a frame's hands in the spool
 
 
 class Recorder:
@@ -96,7 +96,8 @@ class Recorder:
         if detection is not None:
             parts.update(points=detection.points, scores=detection.scores, matrix=detection.matrix)
             if self._hands is not None and rgb is not None:  # the hands in front of this frame's face
-                parts["hands"] = self._hands.detect(rgb, round(1000 * self.n_frames / self.fps))
+                parts["hands"] = self._hands.detect(rgb, round(1000 * self.n_frames / self.fps),
+                                                   np.reshape(detection.points, (-1, 3)))
         for name, fh in self._files.items():
             value = parts[name]
             size = self._sizes[name]
