@@ -8,6 +8,7 @@ memory maps.
 from __future__ import annotations
 
 import shutil
+import typing
 import tempfile
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -47,7 +48,8 @@ def spool_folder(parent: Path | None = None) -> Iterator[Path]:
 class Spool:
     """Append-only float32 files on disk, read back as memory maps (flat memory)."""
 
-    SHAPES = {"points": (N_LANDMARKS, 3), "scores": (N_SCORES,), "matrix": (4, 4), "hands": HANDS_SHAPE}
+    SHAPES: typing.ClassVar[dict] = {"points": (N_LANDMARKS, 3), "scores": (N_SCORES,), "matrix": (4, 4),
+                                     "hands": HANDS_SHAPE}
 
     def __init__(self, folder: Path):
         self.folder = folder

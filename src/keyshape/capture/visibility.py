@@ -197,7 +197,7 @@ def cut_hand(path: str | Path, frame: int, *, anchor, scale: float, since: int =
     from .video import iter_frames
 
     with HandTracker() as tracker:
-        for at, (ms, rgb) in enumerate(iter_frames(path, start=since, end=frame + 1), start=since):
+        for at, (ms, rgb) in enumerate(iter_frames(path, start=since, end=frame + 1), start=since):  # noqa: B007
             hands = tracker.detect(rgb, ms)
     found = np.flatnonzero(np.isfinite(hands[:, 0, 0]))
     if at != frame or not len(found):

@@ -6,11 +6,11 @@ from pathlib import Path
 
 from ._options import (
     add_capture_options,
-    add_visibility_option,
     add_correspondence_option,
     add_key_options,
     add_normalize_option,
     add_solve_options,
+    add_visibility_option,
     capture_kwargs,
     describe_keys,
     progress,

@@ -23,6 +23,7 @@ def run(args) -> None:
     from ..io import load_keys, save_weights_csv
 
     keys = load_keys(args.keys)
-    solved = solve_track_file(args.track, keys, visibility=args.visibility, **solve_kwargs(args))  # streamed: no take-sized copies
+    solved = solve_track_file(args.track, keys, visibility=args.visibility,
+                              **solve_kwargs(args))  # streamed: no take-sized copies
     save_weights_csv(solved.weights, args.output)
     say(args, f"{args.output}: {solved.weights.n_frames} frames x {solved.weights.n_channels} keys; {solved.gaps}")

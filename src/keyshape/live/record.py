@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..containers import KeyShapes, Rig, Track, Weights
 from ..capture.mediapipe import N_HAND_POINTS, N_HANDS
+from ..containers import KeyShapes, Rig, Track, Weights
 from .frame import LiveFrame
 
 __all__ = ["Recorder", "RECORD_FILES"]
