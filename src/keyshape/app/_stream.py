@@ -14,7 +14,6 @@ the smoothed weighted solve reads.
 from __future__ import annotations
 
 import dataclasses
-
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass

@@ -8,8 +8,8 @@ memory maps.
 from __future__ import annotations
 
 import shutil
-import typing
 import tempfile
+import typing
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
