@@ -78,3 +78,61 @@ def test_item01_batch_refuses_a_take_whose_folder_is_no_plain_name(tmp_path, dem
     done = keyshape("batch", take, "-o", project / "out", "--sequential", "-q")
     one_line_error(done, 1, f"{take}: its name gives no take folder")
     assert digests(project) == before and not (project / "out").exists()
+
+
+# -- High 2: a reused run folder loses only what an earlier run wrote ------------------------------------
+
+
+def test_item02_run_in_a_reused_folder_removes_only_what_the_earlier_run_wrote(made, tmp_path):
+    folder = shutil.copytree(made["run"], tmp_path / "take")
+    info = json.loads((folder / "take.json").read_text())
+    assert set(info["written"]) == {p.name for p in folder.iterdir()}  # the record of what the run wrote
+    look_alikes = ("animation.blend1", "animation.final.fbx", "animation.glb.bak", "map.json",
+                   "correspondence.json", "notes.txt")
+    for name in look_alikes:
+        (folder / name).write_text(f"the user's own {name}")
+    (folder / "preview.mp4").write_bytes(b"an earlier run's preview")  # that run's record says so
+    (folder / "take.json").write_text(json.dumps({**info, "written": [*info["written"], "preview.mp4"]}))
+    mine = {name: (folder / name).read_bytes() for name in look_alikes}
+    done = keyshape("run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q")
+    assert done.returncode == 0, done.stderr
+    assert {name: (folder / name).read_bytes() for name in look_alikes} == mine
+    assert not (folder / "preview.mp4").exists()  # stale: written by the earlier run, not by this one
+    info = json.loads((folder / "take.json").read_text())
+    assert info["n_frames"] == 12 and "preview.mp4" not in info["written"]
+    assert set(info["written"]) | set(look_alikes) == {p.name for p in folder.iterdir()}
+
+
+# -- Medium 4: the run's final move is one step ------------------------------------------------------------
+
+SIGNAL_AT_MOVE = """
+import os, signal, sys
+from pathlib import Path
+out = Path(sys.argv[1]).resolve()
+replace, moves = os.replace, []
+def moving(src, dst, **kw):  # a real SIGTERM, sent at the second file moved into OUTDIR
+    if Path(dst).resolve().parent == out and Path(src).parent.name.startswith("." + out.name + "."):
+        moves.append(dst)
+        if len(moves) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+    return replace(src, dst, **kw)
+os.replace = moving
+from keyshape.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_item04_a_signal_during_the_final_move_leaves_the_old_take_or_the_new_one(made, tmp_path):
+    from keyshape.io import load_track, load_weights_csv
+
+    folder = shutil.copytree(made["run"], tmp_path / "take")
+    argv = [folder, "run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q"]
+    done = subprocess.run([sys.executable, "-c", SIGNAL_AT_MOVE, *map(str, argv)], capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 143 and done.stderr.strip().endswith("keyshape: terminated"), done.stderr
+    info = json.loads((folder / "take.json").read_text())  # the switch was not cut: the new take, whole
+    assert info["n_frames"] == 12
+    assert load_track(folder / "track.npz").n_frames == 12 and load_weights_csv(folder / "weights.csv").n_frames == 12
+    assert set(info["written"]) == {p.name for p in folder.iterdir()}
+    assert [p.name for p in tmp_path.iterdir()] == ["take"]  # no stage left beside it
+    assert keyshape("report", folder, "--no-preview", "-q").returncode == 0
