@@ -136,3 +136,31 @@ def test_item04_a_signal_during_the_final_move_leaves_the_old_take_or_the_new_on
     assert set(info["written"]) == {p.name for p in folder.iterdir()}
     assert [p.name for p in tmp_path.iterdir()] == ["take"]  # no stage left beside it
     assert keyshape("report", folder, "--no-preview", "-q").returncode == 0
+
+
+# -- High 3: a live take survives a second Ctrl-C -------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", [signal.SIGINT, signal.SIGTERM])
+def test_item03_a_second_signal_while_the_recording_is_written_loses_nothing(made, tmp_path, kind):
+    from keyshape.io import load_track
+
+    record = tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", "live", str(made["video"]), "--keys",
+                             str(made["keys"]), "--record", str(record), "--vmc", "127.0.0.1:9"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    frames = 478 * 3 * 4 * 20  # the bytes of 20 frames' landmarks
+    while time.monotonic() < deadline and not any(p.stat().st_size > frames for p in record.glob(".live-*/points.f32")):
+        time.sleep(0.05)  # 20 frames spooled
+    proc.send_signal(kind)
+    while proc.poll() is None and time.monotonic() < deadline:  # and again, the double Ctrl-C, until it ends
+        time.sleep(0.05)
+        proc.send_signal(kind)
+    out, err = proc.communicate(timeout=60)
+    assert {p.name for p in record.iterdir()} == {"track.npz", "keys.json", "weights.csv", "animation.glb",
+                                                 "take.json"}  # the spool became the take, whole
+    info = json.loads((record / "take.json").read_text())
+    assert info["n_frames"] > 5 and load_track(record / "track.npz").n_frames == info["n_frames"]
+    assert proc.returncode in (128 + kind, -kind), err  # a signal once it is done ends it at once: -kind
+    assert "Traceback" not in err and "keyshape: closing the outputs" in err and "solved and sent" in out

@@ -6,6 +6,7 @@ import contextlib
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
@@ -81,20 +82,27 @@ def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = N
 
 
 @contextlib.contextmanager
-def held_signals() -> Iterator[None]:
+def held_signals(*, waiting: str | None = None) -> Iterator[None]:
     """Hold Ctrl-C and SIGTERM until the block is done, then act on them as they would have.
 
     For the few steps that must not be cut in two (a folder's switch to its new files, a live
     take written from its spool). A signal that came meanwhile is delivered on leaving, to the
-    handler it was meant for (``KeyboardInterrupt``, the command line's ``Terminated``). Outside
-    the main thread (where signal handlers cannot be set) the block runs as it is.
+    handler it was meant for (``KeyboardInterrupt``, the command line's ``Terminated``); the
+    first one prints ``waiting`` (if given) to stderr. Outside the main thread (where signal
+    handlers cannot be set) the block runs as it is.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     came: list[int] = []
+
+    def hold(signum, frame) -> None:
+        if not came and waiting:
+            print(waiting, file=sys.stderr, flush=True)
+        came.append(signum)
+
     kinds = (signal.SIGINT, signal.SIGTERM)
-    previous = {kind: signal.signal(kind, lambda signum, frame: came.append(signum)) for kind in kinds}
+    previous = {kind: signal.signal(kind, hold) for kind in kinds}
     try:
         yield
     finally:
