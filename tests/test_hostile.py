@@ -410,6 +410,8 @@ def test_row16_limits_are_in_help(capsys):
 def test_row17_reused_output_folder_keeps_no_stale_file(hostile, tmp_path):
     old = _copy(hostile["run"], tmp_path / "old demo")
     (old / "preview.mp4").write_bytes(b"the old 472-frame preview")
+    info = json.loads((old / "take.json").read_text())  # the earlier run wrote it: its record says so
+    (old / "take.json").write_text(json.dumps({**info, "written": [*info["written"], "preview.mp4"]}))
     (old / "notes.txt").write_text("mine")  # not keyshape's: left alone
     ok(["run", hostile["video"], "--end", 24, "--count", 2, "--no-preview", "-o", old, "-q"])
     assert not (old / "preview.mp4").exists()

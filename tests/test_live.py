@@ -409,7 +409,7 @@ def test_sigterm_stops_cleanly_and_keeps_the_recording(demo_clip, clip_keys, tmp
     time.sleep(6)
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 0, err
+    assert proc.returncode == 143 and err.strip().endswith("keyshape: terminated"), err  # once written
     assert "stopped (SIGTERM)" in out
     folder = tmp_path / "rec"
     info = json.loads((folder / "take.json").read_text())
@@ -559,7 +559,7 @@ def test_viewer_shows_live_weights_while_a_clip_plays(browser, demo_clip, clip_k
     finally:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=60)
-    assert proc.returncode == 0
+    assert proc.returncode == 130  # stopped by Ctrl-C, as any command is
 
 
 def test_recording_keeps_the_whole_frames_when_a_signal_stops_a_write(tmp_path):

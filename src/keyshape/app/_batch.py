@@ -33,7 +33,7 @@ from typing import Self
 from ..exceptions import InputError, KeyshapeError
 from ._run import RunOptions
 
-__all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", "is_complete"]
+__all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", "is_complete", "take_folder"]
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mpg", ".mpeg", ".wmv"})
 SUMMARY_FIELDS = ("take", "frames", "detection_rate", "keys", "error_pct", "status", "seconds", "error")
@@ -69,8 +69,10 @@ class BatchRow:
 def find_takes(paths: Sequence[str | Path]) -> list[Path]:
     """The videos named by ``paths``: files as given, folders as the videos directly inside them.
 
-    Raises InputError for a missing path, a folder without videos, or two takes with the same
-    stem (they would share an output folder).
+    A folder's hidden files are left out (as ``ls`` leaves them out); every take's folder name is
+    :func:`take_folder`'s. Raises InputError for a missing path, a folder without videos, a video
+    whose name gives no take folder, or two takes with the same stem (they would share an output
+    folder).
     """
     takes: list[Path] = []
     for path in map(Path, paths):
@@ -87,13 +89,38 @@ def find_takes(paths: Sequence[str | Path]) -> list[Path]:
     return _check_stems(takes)
 
 
+_OWN_NAMES = frozenset({"summary.csv", "keys.json", TRACKS})  # what batch itself writes in OUTDIR
+
+
+def take_folder(video: str | Path) -> str:
+    """The name of ``video``'s take folder in OUTDIR: its stem, the one rule every take follows.
+
+    Raises InputError naming the video when the stem is no plain folder name: empty, ``.`` or
+    ``..`` (the folder would be OUTDIR itself or its parent), hidden (keyshape's stage and cache
+    folders are), or one of the files batch writes in OUTDIR (``summary.csv``, ``keys.json``).
+
+    Examples
+    --------
+    >>> take_folder("takes/actor 1.mp4")
+    'actor 1'
+    """
+    stem = Path(video).stem
+    problem = ("the folder would be OUTDIR or its parent" if stem in ("", ".", "..") else
+               "a hidden folder" if stem.startswith(".") else
+               "a name batch writes itself" if stem in _OWN_NAMES else None)
+    if problem is not None:
+        raise InputError(f"{video}: its name gives no take folder ({stem!r}: {problem}); rename the video")
+    return stem
+
+
 def _check_stems(takes: list[Path]) -> list[Path]:
     seen: dict[str, Path] = {}
     for take in takes:
-        if take.stem in seen and seen[take.stem].resolve() != take.resolve():
-            raise InputError(f"two takes would share the output folder {take.stem!r}: "
-                             f"{seen[take.stem]} and {take}; rename one")
-        seen.setdefault(take.stem, take)
+        name = take_folder(take)
+        if name in seen and seen[name].resolve() != take.resolve():
+            raise InputError(f"two takes would share the output folder {name!r}: "
+                             f"{seen[name]} and {take}; rename one")
+        seen.setdefault(name, take)
     return list(seen.values())
 
 
@@ -284,7 +311,7 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions |
         _forget_shared(outdir)
     made_with = replace(options, keys=outdir / "keys.json") if shared_keys else options
     rows = {} if force else {v: _skipped_row(v, outdir) for v in videos
-                             if _is_current(outdir / v.stem, v, made_with)}
+                             if _is_current(outdir / take_folder(v), v, made_with)}
     pending = [v for v in videos if v not in rows]
     report = on_row or (lambda row: None)
     for row in rows.values():
@@ -306,7 +333,7 @@ def _process(videos: list[Path], outdir: Path, options: RunOptions, shared_keys:
         for video, row in failed.items():
             rows[video] = row
             report(row)
-    jobs = [(v, outdir / v.stem, options, tracks.get(v)) for v in videos if v not in rows]
+    jobs = [(v, outdir / take_folder(v), options, tracks.get(v)) for v in videos if v not in rows]
     for job, row in runner.map(_run_task, jobs):
         rows[job[0]] = row if isinstance(row, BatchRow) else _crashed(job[0], row)
         report(rows[job[0]])
@@ -340,7 +367,7 @@ def _shared_key_set(videos: list[Path], outdir: Path, options: RunOptions, runne
 
     cache = outdir / TRACKS
     cache.mkdir(exist_ok=True)
-    tracks = {v: cache / f"{v.stem}.npz" for v in videos}
+    tracks = {v: cache / f"{take_folder(v)}.npz" for v in videos}
     jobs = [(v, tracks[v], options.capture) for v in videos if not tracks[v].is_file()]
     failed = {}
     for job, row in runner.map(_track_task, jobs):
@@ -376,7 +403,7 @@ def _warn_out_of_reach(keys, keys_path: Path, tracks: dict, options: RunOptions)
         beyond = {r: e for r, e in errors.items() if e > options.max_error}
         if beyond:
             worst = ", ".join(f"{r} {e:.2f}" for r, e in beyond.items())
-            saved = shlex.quote(str(keys_path.parent / video.stem / "track.npz"))
+            saved = shlex.quote(str(keys_path.parent / take_folder(video) / "track.npz"))
             warnings.warn(f"{video.name}: outside the shared key set's reach (RMS error {worst} {unit}, target "
                           f"{options.max_error:g}); `keyshape coverage {saved} --keys {shlex.quote(str(keys_path))}"
                           f" -o DIR` shows where, `keyshape keys {saved} --extend ... -o KEYS.json` adds keys for it",
@@ -389,7 +416,7 @@ def _skipped_row(video: Path, outdir: Path) -> BatchRow:
     if previous is not None and previous.status in ("ok", "skipped"):
         return replace(previous, status="skipped", seconds=0.0)
     try:
-        frames = int(json.loads((outdir / video.stem / "take.json").read_text())["n_frames"])
+        frames = int(json.loads((outdir / take_folder(video) / "take.json").read_text())["n_frames"])
     except (OSError, ValueError, KeyError, TypeError):
         frames = None
     return BatchRow(video.name, frames, status="skipped")

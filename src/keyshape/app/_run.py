@@ -2,10 +2,12 @@
 
 ``run_take`` tracks a video, discovers (or reuses) the key shapes, solves the weights, drives a
 character and writes every output into one folder. Outputs are staged in a hidden folder beside
-and moved in only when everything succeeded, so a failure leaves no half-written take behind. A
-reused folder keeps no stale output: the files of an earlier run that this run did not write
-(its ``preview.mp4`` under ``--no-preview``, its ``map.json``, ...) are removed; files keyshape
-does not write are left alone. The rig, mapping and key set are read before the tracking starts.
+and moved in only when everything succeeded, in one step, so a failure or a signal leaves no
+half-written or mixed take behind. A reused folder keeps no stale output: the files an earlier run
+wrote (its ``take.json`` records them, :func:`keyshape.io.take.written_by`) that this run did not
+write again (its ``preview.mp4`` under ``--no-preview``, its ``map.json``, ...) are removed; any
+other file is left alone, whatever its name. The rig, mapping and key set are read before the
+tracking starts.
 """
 
 from __future__ import annotations
@@ -32,10 +34,6 @@ from ..io.atomic import staged_folder
 __all__ = ["RunOptions", "TakeSummary", "run_take", "OUTPUT_FILES", "default_character_extras"]
 
 OUTPUT_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
-# every file a run may write: in a reused folder, those this run did not write are removed
-RUN_OUTPUTS = frozenset(OUTPUT_FILES) | {"preview.mp4", "keyshapes.png", "weights.png", "report.html",
-                                         "correspondence.json", "map.json", "error_vs_k.png",
-                                         "error_vs_k.json", "error_vs_k.csv"}
 ANIMATION_SUFFIXES = {"fbx": ".fbx", "blend": ".blend", "usd": ".usda"}  # RunOptions.formats
 
 
@@ -183,11 +181,6 @@ def _check_neutral_in_range(options: RunOptions, video: Path) -> None:
                          f"--start); got {options.neutral}")
 
 
-def _run_owned(name: str) -> bool:
-    """Whether ``name`` is a file ``run_take`` writes (an earlier run's copy of it is stale)."""
-    return name in RUN_OUTPUTS or name.startswith("animation.")
-
-
 def _error_pct(solved, keys: KeyShapes) -> float:
     from ..schemes import eye_corners
 
@@ -313,7 +306,10 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     if auto is not None and auto.route == "mapping" and options.refine:
         refinement = _refined(auto, options, track, solved.weights, progress)
         mapping = refinement.mapping if refinement is not None else mapping
-    with staged_folder(outdir, owned=_run_owned) as stage:  # stale outputs of an earlier run go
+    from ..io.take import record_written, written_by
+
+    earlier = written_by(outdir)  # what an earlier run wrote here: the stale ones go, nothing else
+    with staged_folder(outdir, owned=earlier.__contains__, record="take.json") as stage:
         _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file, remade)
         if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
             auto.correspondence.save(stage / "correspondence.json")
@@ -324,6 +320,7 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
 
             write_take_extras(stage, progress=progress, preview=options.preview)
         files = tuple(sorted(p.name for p in stage.iterdir()))
+        record_written(stage / "take.json", files)
     return TakeSummary(video.name, track.n_frames, float(track.valid.mean()),
                        {r: len(keys.keys_of(r)) for r in keys.regions}, _error_pct(solved, keys),
                        str(solved.gaps), files, time.perf_counter() - start, keys)

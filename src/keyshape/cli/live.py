@@ -129,6 +129,18 @@ def run(args) -> None:
         from ..exceptions import KeyshapeError
 
         raise KeyshapeError(summary.error)
+    _exit_as_stopped(summary.ended)
+
+
+def _exit_as_stopped(ended: str) -> None:
+    """A session stopped by Ctrl-C or SIGTERM ends as any command stopped so (exit 130 or 143), once
+    its outputs are closed and its recording written."""
+    from ..exceptions import Terminated
+
+    if ended == "stopped (Ctrl-C)":
+        raise KeyboardInterrupt
+    if ended == "stopped (SIGTERM)":
+        raise Terminated
 
 
 def _smoothing_of(args):

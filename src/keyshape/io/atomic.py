@@ -5,13 +5,16 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import signal
+import sys
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ..exceptions import InputError
 
-__all__ = ["atomic_path", "staged_folder", "existing_file"]
+__all__ = ["atomic_path", "staged_folder", "existing_file", "held_signals"]
 
 
 def _umask() -> int:
@@ -41,13 +44,20 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 @contextlib.contextmanager
-def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = None) -> Iterator[Path]:
+def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = None,
+                  record: str | None = None) -> Iterator[Path]:
     """Yield a hidden, empty folder beside ``folder``; on success its files move into ``folder``.
 
     A failure (or Ctrl-C, or SIGTERM through the command line) removes the stage and leaves
-    ``folder`` as it was. ``owned(name)`` says which names in ``folder`` belong to this kind of
-    output: those the stage did not write are stale (an earlier run's ``preview.mp4``) and are
+    ``folder`` as it was. ``owned(name)`` says which files in ``folder`` an earlier output wrote:
+    those the stage did not write again are stale (an earlier run's ``preview.mp4``) and are
     removed after the move; other files are never touched.
+
+    The switch is one step: Ctrl-C and SIGTERM wait until every file is in (:func:`held_signals`),
+    so ``folder`` holds the old outputs or the new ones, never a mix. ``record``: the file that
+    says the folder is complete (``take.json``); its old copy is removed first and the new one
+    moved in last, so a switch cut short all the same (power lost, SIGKILL) leaves a folder
+    without it, detectably incomplete.
     """
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -55,15 +65,59 @@ def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = N
     try:
         yield stage
         written = sorted(p.name for p in stage.iterdir())
-        folder.mkdir(exist_ok=True)
-        for name in written:
-            (stage / name).replace(folder / name)
-        if owned is not None:
-            for old in folder.iterdir():
-                if old.is_file() and old.name not in written and owned(old.name):
-                    old.unlink()
+        if record in written:
+            written = [name for name in written if name != record] + [record]
+        with held_signals():
+            folder.mkdir(exist_ok=True)
+            if record in written:
+                (folder / record).unlink(missing_ok=True)
+            for name in written:
+                (stage / name).replace(folder / name)
+            if owned is not None:
+                for old in folder.iterdir():
+                    if old.is_file() and old.name not in written and owned(old.name):
+                        old.unlink()
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def held_signals(*, waiting: str | None = None) -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM until the block is done, then act on them as they would have.
+
+    For the few steps that must not be cut in two (a folder's switch to its new files, a live
+    take written from its spool). A signal that came meanwhile is delivered on leaving, to the
+    handler it was meant for (``KeyboardInterrupt``, the command line's ``Terminated``); the
+    first one prints ``waiting`` (if given) to stderr. Outside the main thread (where signal
+    handlers cannot be set) the block runs as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+
+    def hold(signum, frame) -> None:
+        if not came and waiting:
+            print(waiting, file=sys.stderr, flush=True)
+        came.append(signum)
+
+    kinds = (signal.SIGINT, signal.SIGTERM)
+    previous = {kind: signal.signal(kind, hold) for kind in kinds}
+    try:
+        yield
+    finally:
+        for kind in kinds:
+            signal.signal(kind, previous[kind])
+        for kind in dict.fromkeys(came):
+            _deliver(kind, previous[kind])
+
+
+def _deliver(kind: int, handler) -> None:
+    """Act on signal ``kind`` as ``handler`` (a Python handler, or the default action) would have."""
+    if callable(handler):
+        handler(kind, None)
+    elif handler == signal.SIG_DFL:
+        os.kill(os.getpid(), kind)
 
 
 def existing_file(path: str | Path) -> Path:

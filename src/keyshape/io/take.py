@@ -3,7 +3,10 @@
 ``{"format": "keyshape-take", "version": 1, "video": "/abs/path/take.mp4", "fps": 23.976,
 "n_frames": 472, "image_size": [640, 360], "neutral_frame": 12, "files": {"track": "track.npz",
 "keys": "keys.json", "weights": "weights.csv", "animation": "animation.glb"}}``, and
-``"neutral_source": "/abs/path/rest.png"`` when the neutral comes from a file (``--neutral FILE``).
+``"neutral_source": "/abs/path/rest.png"`` when the neutral comes from a file (``--neutral FILE``),
+and ``"written": ["animation.glb", ..., "take.json"]``, every file the run put in its folder: the
+one record of what keyshape wrote there, so a later run in the same folder removes what it does
+not write again and nothing else (:func:`written_by`).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from ..exceptions import InputError, InputWarning
 from .atomic import atomic_path
 from .validate import check_take_info
 
-__all__ = ["save_take_info", "load_take_info", "take_video", "TAKE_FILES"]
+__all__ = ["save_take_info", "load_take_info", "take_video", "record_written", "written_by", "TAKE_FILES"]
 
 TAKE_FILES = {"track": "track.npz", "keys": "keys.json", "weights": "weights.csv",
               "animation": "animation.glb"}
@@ -51,6 +54,39 @@ def load_take_info(folder: str | Path) -> dict:
         raise InputError(f"{path}: not valid JSON ({exc.__class__.__name__}: {exc})") from None
     check_take_info(path, info)
     return info
+
+
+def record_written(path: str | Path, names) -> None:
+    """Add ``"written"``, the sorted file names ``names`` (``take.json`` among them), to the take
+    description at ``path``, atomically: the record :func:`written_by` reads back."""
+    path = Path(path)
+    info = json.loads(path.read_text())
+    info["written"] = sorted({*map(str, names), path.name})
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(info, indent=1) + "\n")
+
+
+def written_by(folder: str | Path) -> frozenset[str]:
+    """The names of the files an earlier run wrote in ``folder``, as its ``take.json`` records them
+    (``"written"``; for a description from before that record, the files it names); empty when
+    there is no readable description. Only plain names count: nothing outside ``folder``.
+
+    Examples
+    --------
+    >>> written_by("no/such/folder")
+    frozenset()
+    """
+    try:
+        info = json.loads((Path(folder) / "take.json").read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return frozenset()
+    if not isinstance(info, dict) or info.get("format") != "keyshape-take":
+        return frozenset()
+    files = info.get("files")
+    names = info.get("written", list(files.values()) if isinstance(files, dict) else [])
+    if not isinstance(names, list):
+        return frozenset()
+    return frozenset(n for n in names if isinstance(n, str) and n and n == Path(n).name and n not in (".", ".."))
 
 
 def take_video(folder: str | Path, info: dict) -> Path | None:

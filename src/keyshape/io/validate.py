@@ -390,7 +390,8 @@ def _check_increasing_column(path, column: str, values: np.ndarray, lines: list[
 
 def check_take_info(path, info) -> None:
     """Check ``take.json``: its format and, where given, ``fps`` > 0, ``n_frames`` >= 1, ``video``
-    a path, ``files`` a map of names to file names, ``neutral_frame`` and ``image_size``."""
+    a path, ``files`` a map of names to file names, ``written`` a list of file names,
+    ``neutral_frame`` and ``image_size``."""
     if not isinstance(info, dict) or info.get("format") != "keyshape-take":
         raise InputError(f"{path}: not a keyshape take description (expected \"format\": \"keyshape-take\")")
     fps = info.get("fps", 1.0)  # fps and n_frames: what `run` writes; a hand-made one may name only the video
@@ -409,6 +410,9 @@ def check_take_info(path, info) -> None:
     if not isinstance(files, dict) or not all(isinstance(k, str) and isinstance(v, str) and v
                                               for k, v in files.items()):
         raise _fail(path, "files", f"must map roles to file names; got {_show(files)}")
+    written = info.get("written", [])
+    if not isinstance(written, list) or not all(isinstance(n, str) and n for n in written):
+        raise _fail(path, "written", f"must list the file names the run wrote; got {_show(written)}")
     size = info.get("image_size")
     if size is not None and (not isinstance(size, list) or len(size) != 2
                              or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):

@@ -3,7 +3,8 @@
 The source decodes in its own thread (on the other core) and keeps only the newest frame, so
 the loop never works on a stale one; tracking, solving and sending run here, one frame at a
 time. The loop stops when the source ends or fails, on Ctrl-C or SIGTERM, or when
-``controls.stop`` is set; every output is closed on the way out (a recording is then written).
+``controls.stop`` is set; every output is closed on the way out (a recording is then written,
+whatever further signal comes meanwhile).
 """
 
 from __future__ import annotations
@@ -210,12 +211,19 @@ def run_live(source: FrameSource, setup: Callable[[KeyShapes], Session], *, keys
             solver = LiveSolver(keys, fps=source.fps, upper=upper, smoothing=smoothing)
             run.loop(mailbox, tracker, solver, session, duration)
     except (KeyboardInterrupt, Terminated) as stop:
-        run.summary.ended = "stopped (Ctrl-C)" if isinstance(stop, KeyboardInterrupt) else "stopped (SIGTERM)"
+        run.summary.ended = _stopped(stop)
     finally:
+        try:
+            run.finish()  # first: a recording is written whatever comes next
+        except (KeyboardInterrupt, Terminated) as stop:  # one more signal while it was written: it was
+            run.summary.ended = _stopped(stop)
         if previous_cores is not None:
             os.sched_setaffinity(0, previous_cores)
-        run.finish()
     return run.summary
+
+
+def _stopped(stop: BaseException) -> str:
+    return "stopped (Ctrl-C)" if isinstance(stop, KeyboardInterrupt) else "stopped (SIGTERM)"
 
 
 class _Run:
@@ -275,7 +283,16 @@ class _Run:
         return self.gaze
 
     def finish(self) -> None:
-        """Stop the source, close every output (a recording is written now), fill in the summary."""
+        """Stop the source, close every output (a recording is written now), fill in the summary.
+
+        Ctrl-C and SIGTERM wait meanwhile (the common double Ctrl-C): they are acted on once every
+        output is closed, so a live take, which cannot be redone, is always written whole."""
+        from ..io.atomic import held_signals
+
+        with held_signals(waiting="keyshape: closing the outputs (writing the recording); a moment"):
+            self._finish()
+
+    def _finish(self) -> None:
         self.source.stop()
         summary, mailbox = self.summary, self.source.mailbox
         summary.seconds = time.perf_counter() - self.start

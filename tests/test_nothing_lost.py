@@ -1,0 +1,166 @@
+"""Issue 34, "Nothing lost, round two": one test per item, each driving the real command.
+
+Every command runs as a user runs it, ``python -m keyshape ...`` in a child process (real signals
+where the item is about signals); a failing one must exit with one line naming the file, write no
+output and leave every file of the user's byte-identical.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+def keyshape(*argv, cwd=None, timeout=600) -> subprocess.CompletedProcess:
+    """``keyshape argv`` in a child process (the child inherits PYTHONPATH)."""
+    return subprocess.run([sys.executable, "-m", "keyshape", *map(str, argv)], capture_output=True, text=True,
+                          cwd=cwd, timeout=timeout)
+
+
+def one_line_error(done: subprocess.CompletedProcess, code: int = 1, says: str = "") -> str:
+    """The error line of a failed call: exit ``code``, no traceback, one ``keyshape...: error:`` line
+    (after argparse's usage for code 2), containing ``says``."""
+    err = done.stderr
+    assert done.returncode == code, err
+    assert "Traceback" not in err and "Warning:" not in err, err
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("keyshape: warning:")]
+    if code == 2:
+        lines = [line for line in lines if not line.startswith("usage:") and not line.startswith(" ")]
+    assert len(lines) == 1 and ": error: " in lines[0], err
+    assert "--debug for details" not in lines[0], err
+    assert says in lines[0], lines[0]
+    return lines[0]
+
+
+def digests(folder: Path) -> dict[str, str]:
+    """SHA-256 of every file under ``folder``, by relative path."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory, demo_clip) -> dict[str, Path]:
+    """A short take of the demo clip: its track (frames 24..60), keys (2 per region), weights and a
+    `keyshape run` folder of it, made once for the module."""
+    root = tmp_path_factory.mktemp("lost")
+    track, keys, weights, run = root / "t.npz", root / "k.json", root / "w.csv", root / "run"
+    for argv in (["track", demo_clip, "--start", 24, "--end", 60, "-o", track, "-q"],
+                 ["keys", track, "--count", 2, "-o", keys, "-q"],
+                 ["solve", track, keys, "-o", weights, "-q"],
+                 ["run", demo_clip, "--end", 24, "--count", 2, "--no-preview", "-o", run, "-q"]):
+        done = keyshape(*argv)
+        assert done.returncode == 0, done.stderr
+    return {"track": track, "keys": keys, "weights": weights, "run": run, "video": demo_clip}
+
+
+# -- High 1: a batch take folder is a plain name inside OUTDIR ------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["...mp4", "..mp4", ".hidden.mp4", "summary.csv.mp4"])
+def test_item01_batch_refuses_a_take_whose_folder_is_no_plain_name(tmp_path, demo_clip, name):
+    project = tmp_path / "project"
+    project.mkdir()
+    for mine in ("keys.json", "weights.csv", "animation.blend"):
+        (project / mine).write_text(f"the user's own {mine}")
+    before = digests(project)
+    (tmp_path / "src").mkdir()
+    take = shutil.copy(demo_clip, tmp_path / "src" / name)
+    done = keyshape("batch", take, "-o", project / "out", "--sequential", "-q")
+    one_line_error(done, 1, f"{take}: its name gives no take folder")
+    assert digests(project) == before and not (project / "out").exists()
+
+
+# -- High 2: a reused run folder loses only what an earlier run wrote ------------------------------------
+
+
+def test_item02_run_in_a_reused_folder_removes_only_what_the_earlier_run_wrote(made, tmp_path):
+    folder = shutil.copytree(made["run"], tmp_path / "take")
+    info = json.loads((folder / "take.json").read_text())
+    assert set(info["written"]) == {p.name for p in folder.iterdir()}  # the record of what the run wrote
+    look_alikes = ("animation.blend1", "animation.final.fbx", "animation.glb.bak", "map.json",
+                   "correspondence.json", "notes.txt")
+    for name in look_alikes:
+        (folder / name).write_text(f"the user's own {name}")
+    (folder / "preview.mp4").write_bytes(b"an earlier run's preview")  # that run's record says so
+    (folder / "take.json").write_text(json.dumps({**info, "written": [*info["written"], "preview.mp4"]}))
+    mine = {name: (folder / name).read_bytes() for name in look_alikes}
+    done = keyshape("run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q")
+    assert done.returncode == 0, done.stderr
+    assert {name: (folder / name).read_bytes() for name in look_alikes} == mine
+    assert not (folder / "preview.mp4").exists()  # stale: written by the earlier run, not by this one
+    info = json.loads((folder / "take.json").read_text())
+    assert info["n_frames"] == 12 and "preview.mp4" not in info["written"]
+    assert set(info["written"]) | set(look_alikes) == {p.name for p in folder.iterdir()}
+
+
+# -- Medium 4: the run's final move is one step ------------------------------------------------------------
+
+SIGNAL_AT_MOVE = """
+import os, signal, sys
+from pathlib import Path
+out = Path(sys.argv[1]).resolve()
+replace, moves = os.replace, []
+def moving(src, dst, **kw):  # a real SIGTERM, sent at the second file moved into OUTDIR
+    if Path(dst).resolve().parent == out and Path(src).parent.name.startswith("." + out.name + "."):
+        moves.append(dst)
+        if len(moves) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+    return replace(src, dst, **kw)
+os.replace = moving
+from keyshape.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_item04_a_signal_during_the_final_move_leaves_the_old_take_or_the_new_one(made, tmp_path):
+    from keyshape.io import load_track, load_weights_csv
+
+    folder = shutil.copytree(made["run"], tmp_path / "take")
+    argv = [folder, "run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q"]
+    done = subprocess.run([sys.executable, "-c", SIGNAL_AT_MOVE, *map(str, argv)], capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 143 and done.stderr.strip().endswith("keyshape: terminated"), done.stderr
+    info = json.loads((folder / "take.json").read_text())  # the switch was not cut: the new take, whole
+    assert info["n_frames"] == 12
+    assert load_track(folder / "track.npz").n_frames == 12 and load_weights_csv(folder / "weights.csv").n_frames == 12
+    assert set(info["written"]) == {p.name for p in folder.iterdir()}
+    assert [p.name for p in tmp_path.iterdir()] == ["take"]  # no stage left beside it
+    assert keyshape("report", folder, "--no-preview", "-q").returncode == 0
+
+
+# -- High 3: a live take survives a second Ctrl-C -------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", [signal.SIGINT, signal.SIGTERM])
+def test_item03_a_second_signal_while_the_recording_is_written_loses_nothing(made, tmp_path, kind):
+    from keyshape.io import load_track
+
+    record = tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", "live", str(made["video"]), "--keys",
+                             str(made["keys"]), "--record", str(record), "--vmc", "127.0.0.1:9"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    frames = 478 * 3 * 4 * 20  # the bytes of 20 frames' landmarks
+    while time.monotonic() < deadline and not any(p.stat().st_size > frames for p in record.glob(".live-*/points.f32")):
+        time.sleep(0.05)  # 20 frames spooled
+    proc.send_signal(kind)
+    while proc.poll() is None and time.monotonic() < deadline:  # and again, the double Ctrl-C, until it ends
+        time.sleep(0.05)
+        proc.send_signal(kind)
+    out, err = proc.communicate(timeout=60)
+    assert {p.name for p in record.iterdir()} == {"track.npz", "keys.json", "weights.csv", "animation.glb",
+                                                 "take.json"}  # the spool became the take, whole
+    info = json.loads((record / "take.json").read_text())
+    assert info["n_frames"] > 5 and load_track(record / "track.npz").n_frames == info["n_frames"]
+    assert proc.returncode in (128 + kind, -kind), err  # a signal once it is done ends it at once: -kind
+    assert "Traceback" not in err and "keyshape: closing the outputs" in err and "solved and sent" in out
