@@ -16,6 +16,7 @@ from ._options import (
     say,
     shell_command,
     solve_kwargs,
+    stage_lines,
 )
 
 DESCRIPTION = ("Track, discover keys, solve and retarget in one go. Without --rig the character is "
@@ -115,7 +116,8 @@ def run(args) -> None:
                          refine=args.refine, capture=capture_kwargs(args), preview=not args.no_preview,
                          formats=tuple(args.formats),
                          **solve_kwargs(args))
-    summary = run_take(args.video, args.output, options, progress=progress(args))
+    with stage_lines(args):
+        summary = run_take(args.video, args.output, options, progress=progress(args))
     keys = summary.keys
     say(args, f"{args.video.name}: {summary.n_frames} frames, face in {100 * summary.detection_rate:.1f} %, "
               f"neutral frame {keys.neutral_frame}")
