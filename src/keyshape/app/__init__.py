@@ -9,7 +9,9 @@
 * :func:`run_take` / :class:`RunOptions` — ``keyshape run``: one video to a take folder;
 * :func:`batch` — ``keyshape batch``: many takes, resumable, in parallel (processes or Ray);
 * :func:`write_sculpt_kit` — ``keyshape sculpt``: the artist's kit of targets to sculpt;
-* :class:`KeyShapeModel` — the scikit-learn style estimator over the same functions.
+* :class:`KeyShapeModel` — the scikit-learn style estimator over the same functions;
+* :func:`stage` — one log line per stage of a run (:data:`STAGE_LOGGER`), and :func:`check_drivable`
+  — whether a rig's targets are named after key shapes, before any tracking.
 """
 
 from importlib import import_module
@@ -28,6 +30,8 @@ _LAZY = {
     **dict.fromkeys(("write_sculpt_kit", "check_kit_folder", "sculpt_targets", "contact_sheet", "SculptKit"),
                     "_sculpt"),
     "KeyShapeModel": "_model",
+    **dict.fromkeys(("stage", "STAGE_LOGGER"), "_stages"),
+    **dict.fromkeys(("check_drivable",), "_drivable"),
 }
 
 __all__ = [*_LAZY]  # noqa: PLE0604 - the names come from __getattr__

@@ -118,6 +118,9 @@ def _refined(auto, options: RunOptions, track: Track, weights, progress: bool):
 
     if not refinable_targets(auto.rig.names):  # not an ARKit rig: nothing to refine, nothing to say
         return None
+    from ._stages import stage
+
+    stage("render and compare: refining the targets the scores barely see")
     colours = None
     if options.rig is not None and Path(options.rig).suffix.lower() in (".glb", ".gltf"):
         from ..io.gltf import read_colours
@@ -163,9 +166,19 @@ def _read_inputs(options: RunOptions, video: Path, track: Track | None) -> tuple
 
         Mapping.from_file(options.mapping, targets=rig.names)
     keys = load_keys(options.keys) if options.keys is not None else None
+    if rig is not None and options.mapping is None and not options.auto_targets:
+        _check_drivable(rig, options, keys)
     if isinstance(options.neutral, int) and track is None and keys is None:
         _check_neutral_in_range(options, video)
     return rig, keys
+
+
+def _check_drivable(rig: Rig, options: RunOptions, keys: KeyShapes | None) -> None:
+    from ..schemes import resolve_regions
+    from ._drivable import check_drivable
+
+    regions = list(keys.regions) if keys is not None else list(resolve_regions(options.regions, 478))
+    check_drivable(rig, options.rig, regions=regions, keys=keys)
 
 
 def _check_neutral_in_range(options: RunOptions, video: Path) -> None:
@@ -284,6 +297,7 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     """
     from ..capture import track_video
     from ._pipeline import discover_keys, key_scores, solve_take
+    from ._stages import stage as announce
 
     start = time.perf_counter()
     video, outdir = Path(video), Path(outdir)
@@ -292,15 +306,19 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     _check_formats(options.formats)
     loaded_rig, keys = _read_inputs(options, video, track)
     if track is None:
+        announce(f"tracking {video.name}")
         track = track_video(video, progress=progress, **options.capture)
     if keys is None:
+        announce(f"finding the key shapes of {track.n_frames} frames")
         keys = discover_keys(track, regions=options.regions, n_keys=options.n_keys,
                              method=options.method, neutral=options.neutral, take=video.name,
                              upper=options.upper, max_error=options.max_error, mirror=options.mirror)
+    announce(f"solving the weights of {keys.n_keys} keys")
     solved = solve_take(track, keys, smoothness=options.smoothness, upper=options.upper,
                         convex=options.convex)
     scores = key_scores(keys, track, solved.weights,
                         same_take=options.keys is None and not isinstance(options.neutral, Path))  # reused keys too
+    announce("driving the character" + (" (proposing its targets)" if options.auto_targets else ""))
     rig, mapping, keep_file, auto, remade = _rig_and_mapping(options, keys, scores, loaded_rig)
     refinement = None
     if auto is not None and auto.route == "mapping" and options.refine:
@@ -310,6 +328,7 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
 
     earlier = written_by(outdir)  # what an earlier run wrote here: the stale ones go, nothing else
     with staged_folder(outdir, owned=earlier.__contains__, record="take.json") as stage:
+        announce("writing the animation and the take's files")
         _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file, remade)
         if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
             auto.correspondence.save(stage / "correspondence.json")
@@ -318,6 +337,8 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
         if options.extras:
             from ..report import write_take_extras
 
+            announce("rendering the preview video, the pictures and the report" if options.preview
+                     else "drawing the pictures and the report")
             write_take_extras(stage, progress=progress, preview=options.preview)
         files = tuple(sorted(p.name for p in stage.iterdir()))
         record_written(stage / "take.json", files)

@@ -141,7 +141,7 @@ def _run(argv: list[str]) -> int:
 
         check_frame_range(args.parser, args)
     if hasattr(module, "check"):
-        module.check(parser, args)
+        module.check(args.parser, args)
     try:
         with _blas_threads(), _terminate_as_interrupt(), _one_line_warnings():
             from ._paths import check_outputs

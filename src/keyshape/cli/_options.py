@@ -193,6 +193,34 @@ def progress(args) -> bool:
     return not args.quiet and sys.stderr.isatty()
 
 
+def stage_lines(args):
+    """A context in which each stage a run starts is one line (``keyshape: tracking take.mp4``) when
+    stderr is not a terminal (a log, a CI job: no progress bars there) and not ``--quiet``. The lines
+    go to stdout with the run's summary, so an error stays the one line on stderr."""
+    import contextlib
+    import logging
+
+    if args.quiet or sys.stderr.isatty():
+        return contextlib.nullcontext()
+    from ..app import STAGE_LOGGER
+
+    @contextlib.contextmanager
+    def attached():
+        logger = logging.getLogger(STAGE_LOGGER)
+        handler = logging.StreamHandler(sys.stdout)
+        handler.setFormatter(logging.Formatter("keyshape: %(message)s"))
+        previous = logger.level
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+        try:
+            yield
+        finally:
+            logger.removeHandler(handler)
+            logger.setLevel(previous)
+
+    return attached()
+
+
 def say(args, text: str) -> None:
     if not args.quiet:
         print(text, flush=True)

@@ -123,8 +123,11 @@ def run(args) -> None:
                            duration=args.duration, say=lambda text: say(args, text))
     say(args, _describe(summary))
     if args.record is not None and summary.keys is not None:
-        say(args, f"recorded {args.record}/: re-solve offline with `keyshape solve {args.record}/track.npz "
-                  f"{args.record}/keys.json`")
+        from ._options import shell_command
+
+        rerun = shell_command("keyshape", "solve", args.record / "track.npz", args.record / "keys.json", "-o",
+                              args.record / "weights.csv")
+        say(args, f"recorded {args.record}/: re-solve offline with `{rerun}`")
     if summary.error:
         from ..exceptions import KeyshapeError
 

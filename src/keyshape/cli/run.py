@@ -17,13 +17,26 @@ from ._options import (
     say,
     shell_command,
     solve_kwargs,
+    stage_lines,
 )
 
 DESCRIPTION = ("Track, discover keys, solve and retarget in one go. Without --rig the character is "
                "keyshape's stylised head, with target shapes proposed from the key shapes.")
+EPILOG = """\
+examples:
+  keyshape run take.mp4                                  # the default character, into ./keyshape-take/
+  keyshape run take.mp4 -o out/                          # the same, into out/
+  keyshape run take.mp4 --rig avatar.glb --auto-targets -o out/   # an ARKit rig (Ready Player Me, VRM, ...)
+  keyshape run take.mp4 --rig kit/sculpt.glb -o out/     # a character sculpted in the kit of `keyshape sculpt`
+  keyshape run take.mp4 --rig hero.glb --map map.json -o out/     # a rig's own shapes, through a mapping
+  keyshape run take.mp4 --keys actor_keys.json -o out/   # a key set shared across takes
+then: open out/report.html, or `keyshape view out/`
+"""
+DEFAULT_OUTPUT = "keyshape-{name}"  # beside the current folder, as `keyshape demo` writes ./keyshape-demo
 
 
 def add_arguments(p) -> None:
+    p.epilog = EPILOG
     p.add_argument("video", type=Path, help="video file or folder of images")
     p.add_argument("--rig", type=Path, default=None,
                    help="character: OBJ folder, .glb/.gltf (kept whole, animation added) or USD, with "
@@ -46,7 +59,10 @@ def add_arguments(p) -> None:
                         "and those targets follow MediaPipe's scores alone")
     add_capture_options(p)
     add_visibility_option(p)
-    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
+    p.add_argument("-o", "--output", type=Path, default=None, metavar="OUTDIR",
+                   help="output folder: track.npz, keys.json, weights.csv, animation.glb, preview.mp4, the "
+                        "pictures and report.html (default ./keyshape-VIDEONAME, e.g. ./keyshape-take for "
+                        "take.mp4)")
     add_key_options(p)
     add_solve_options(p)
     p.add_argument("--no-preview", action="store_true",
@@ -64,9 +80,32 @@ def add_format_option(p) -> None:
 
 
 def check(parser, args) -> None:
-    """Usage errors argparse cannot see (exit code 2)."""
+    """Usage errors argparse cannot see (exit code 2); fills in the default output folder."""
     if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine):
         parser.error("--correspondence, --front, --normalize and --no-refine only apply with --auto-targets")
+    if is_track_file(args.video):
+        parser.error(track_file_message(args.video))
+    if args.output is None:
+        args.output = default_output(args.video)
+
+
+def default_output(video: Path) -> Path:
+    """``./keyshape-<video name without suffix>`` (a folder of images: its name)."""
+    name = (video.name if video.is_dir() else video.stem) or "take"
+    return Path(DEFAULT_OUTPUT.format(name=name))
+
+
+def is_track_file(path: Path) -> bool:
+    """Whether ``path`` is a track file (``.npz``, as `keyshape track` writes) rather than a video."""
+    return path.suffix.lower() == ".npz" and path.is_file()
+
+
+def track_file_message(path: Path) -> str:
+    """What to run on a track file, which ``run`` (a video's whole path) cannot take."""
+    keys = path.with_name("keys.json")
+    return (f"{path} is a track file, not a video: give run the video it was tracked from, or run "
+            f"`{shell_command('keyshape', 'keys', path, '-o', keys)}` then "
+            f"`{shell_command('keyshape', 'solve', path, keys, '-o', path.with_name('weights.csv'))}`")
 
 
 def run(args) -> None:
@@ -79,7 +118,8 @@ def run(args) -> None:
                          refine=args.refine, capture=capture_kwargs(args), preview=not args.no_preview,
                          formats=tuple(args.formats),
                          **solve_kwargs(args))
-    summary = run_take(args.video, args.output, options, progress=progress(args))
+    with stage_lines(args):
+        summary = run_take(args.video, args.output, options, progress=progress(args))
     keys = summary.keys
     say(args, f"{args.video.name}: {summary.n_frames} frames, face in {100 * summary.detection_rate:.1f} %, "
               f"neutral frame {keys.neutral_frame}")

@@ -30,7 +30,8 @@ def add_arguments(p) -> None:
     p.add_argument("--track", type=Path, default=None,
                    help="the take's track (default: track.npz beside KEYS.json, else the video is tracked)")
     add_rig_options(p, meshes="to put the targets on")
-    p.add_argument("-o", "--output", type=Path, required=True, metavar="KIT/")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="KIT/",
+                   help="the kit's folder: sculpt.glb, keys.png and README.md are written into it")
     p.add_argument("--force", action="store_true",
                    help="replace a kit already in KIT/ (default: refused, its sculpt.glb may hold an artist's work)")
 
