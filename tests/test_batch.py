@@ -92,7 +92,7 @@ def test_corrupt_take_is_reported_and_the_rest_complete(sequential_out):
         keys = load_keys(sequential_out / name / "keys.json")  # 8 frames per region, and their mirrors
         assert float(row["detection_rate"]) == 1.0 and int(row["keys"]) == keys.n_keys
         assert (~keys.mirrored).sum() == 16
-        assert 0 < float(row["error_pct"]) < 5
+        assert 0 < float(row["error_pct"]) < 6  # all landmarks count (no hand: none hidden)
         assert is_complete(sequential_out / name)
     assert not (sequential_out / "corrupt").exists()
     assert not [p for p in sequential_out.iterdir() if p.name.startswith(".")]  # no staging left
