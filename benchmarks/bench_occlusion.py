@@ -140,11 +140,12 @@ def labelled_scores(take) -> dict:
 
 def hand(frame: int, part: str):
     """The actor's hand in ``frame`` of the embedded clip, anchored at the middle of ``part``."""
-    from keyshape.capture.visibility import cut_hand
+    from keyshape.capture.visibility import hand_picture
+    from keyshape.datasets import cut_out
 
     source = track(CLIP, end=frame + 1, visibility="off").points[frame]
     size = float(np.linalg.norm(source[263, :2] - source[33, :2]))
-    return cut_hand(CLIP, frame, anchor=source[parts()[part], :2].mean(axis=0), scale=size, since=50)
+    return cut_out(*hand_picture(CLIP, frame, since=50), anchor=source[parts()[part], :2].mean(axis=0), scale=size)
 
 
 def composite(video: Path, out: Path, occluder, part: str, *, start: int = 0) -> tuple[Path, list]:

@@ -39,10 +39,11 @@ def hand():
     silhouette (anchored at her mouth, her outer eye corners 146 px apart)."""
     from importlib import resources
 
-    from keyshape.capture.visibility import cut_hand
+    from keyshape.capture.visibility import hand_picture
+    from keyshape.datasets import cut_out
 
     clip = Path(str(resources.files("keyshape").joinpath("data/WolfgangLanger_Pexels.mp4")))
-    return cut_hand(clip, 150, anchor=(429.6, 262.4), scale=146.1, since=50)
+    return cut_out(*hand_picture(clip, 150, since=50), anchor=(429.6, 262.4), scale=146.1)
 
 
 def _frames(perf, keys, hand=None):

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["estimate_visibility", "visibility_from_hands", "hand_cover", "hand_mask", "cut_hand", "VISIBILITY_MODES",
+__all__ = ["estimate_visibility", "visibility_from_hands", "hand_cover", "hand_mask", "hand_picture", "VISIBILITY_MODES",
            "HAND_RADIUS", "FINGERS", "THUMB"]
 
 VISIBILITY_MODES = ("auto", "off")  # --visibility: hands found in front of the face, or none estimated
@@ -182,17 +182,15 @@ def hand_mask(shape: tuple[int, int], hand: np.ndarray) -> np.ndarray:
     return hand_cover(grid.reshape(-1, 2), hand).reshape(height, width)
 
 
-def cut_hand(path: str | Path, frame: int, *, anchor, scale: float, since: int = 0):
-    """The hand in ``frame`` of a video, cut out along its silhouette to be pasted onto other takes
-    (:func:`keyshape.datasets.paste`): occluders composited at known places, for the occlusion
-    benchmark and the tests.
+def hand_picture(path: str | Path, frame: int, *, since: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``frame`` of a video and its hand's silhouette, to cut out (:func:`keyshape.datasets.cut_out`)
+    and paste onto other takes: occluders composited at known places, for the occlusion benchmark
+    and the tests.
 
     The hand landmarker follows the hand from frame ``since`` on (a hand lying on a face is found
-    by following it from where it came into the picture). ``anchor`` (x, y) pixels and ``scale``
-    (the face size, pixels) are the :class:`~keyshape.datasets.Occluder`'s. Returns the Occluder;
-    ValueError when no hand is found in ``frame``.
+    by following it from where it came into the picture). Returns ``rgb`` (h, w, 3) uint8 and
+    ``mask`` (h, w) bool; ValueError when no hand is found in ``frame``.
     """
-    from ..datasets import cut_out
     from .mediapipe import HandTracker
     from .video import iter_frames
 
@@ -202,4 +200,4 @@ def cut_hand(path: str | Path, frame: int, *, anchor, scale: float, since: int =
     found = np.flatnonzero(np.isfinite(hands[:, 0, 0]))
     if at != frame or not len(found):
         raise ValueError(f"{path}: no hand found in frame {frame}")
-    return cut_out(rgb, hand_mask(rgb.shape[:2], hands[found[0]]), anchor, scale)
+    return rgb, hand_mask(rgb.shape[:2], hands[found[0]])
