@@ -18,8 +18,11 @@ Re-solve it offline with the zero-lag smoother: ``keyshape solve DIR/track.npz D
 
 from __future__ import annotations
 
+import os
+import queue
 import shutil
 import tempfile
+import threading
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -34,6 +37,8 @@ __all__ = ["Recorder", "RECORD_FILES"]
 RECORD_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")
 _NAN = np.float32(np.nan)
 HANDS_SHAPE = (N_HANDS, N_HAND_POINTS, 2)  # a frame's hands in the spool
+_NO_HANDS = np.full(HANDS_SHAPE, np.nan, np.float32)
+HAND_QUEUE = 64  # frames the hands' thread may lag behind (about 45 MB of 640x360 frames)
 
 
 class Recorder:
@@ -66,14 +71,23 @@ class Recorder:
         self._spool = Path(tempfile.mkdtemp(prefix=".live-spool-", dir=self.folder))
         self._stack = ExitStack()
         self._files = {name: self._stack.enter_context(open(self._spool / f"{name}.f32", "wb"))  # noqa: SIM115
-                       for name in ("points", "scores", "matrix", "weights", "hands")}
+                       for name in ("points", "scores", "matrix", "weights")}
         self._sizes = {"points": keys.n_landmarks * 3, "scores": len(blendshape_names) or 52,
                        "matrix": 16, "weights": keys.n_keys, "hands": int(np.prod(HANDS_SHAPE))}
-        self._hands = None
+        # the hands: looked for on a thread of their own, so the live loop never waits for them (25-30
+        # ms a frame); each frame's row is written NaN here first, then the thread's finding over it
+        self._hands_fd = os.open(self._spool / "hands.f32", os.O_RDWR | os.O_CREAT, 0o600)
+        self._stack.callback(os.close, self._hands_fd)
+        self._queue: queue.Queue | None = None
         if visibility == "auto":
             from ..capture.mediapipe import HandTracker
 
-            self._hands = self._stack.enter_context(HandTracker())
+            tracker = self._stack.enter_context(HandTracker())
+            self._queue = queue.Queue(maxsize=HAND_QUEUE)
+            worker = threading.Thread(target=self._look, args=(tracker,), name="keyshape-hands", daemon=True)
+            worker.start()
+            self._stack.callback(worker.join)
+            self._stack.callback(self._queue.put, None)  # (callbacks run last first: the stop, then the join)
         self.n_frames = 0
         self.files: tuple[Path, ...] = ()
 
@@ -92,19 +106,36 @@ class Recorder:
                 self._write(detection, keys)
 
     def _write(self, detection, keys, rgb=None) -> None:
-        parts = {"points": None, "scores": None, "matrix": None, "weights": keys, "hands": None}
+        parts = {"points": None, "scores": None, "matrix": None, "weights": keys}
         if detection is not None:
             parts.update(points=detection.points, scores=detection.scores, matrix=detection.matrix)
-            if self._hands is not None and rgb is not None:  # the hands in front of this frame's face
-                parts["hands"] = self._hands.detect(rgb, round(1000 * self.n_frames / self.fps),
-                                                   np.reshape(detection.points, (-1, 3)))
         for name, fh in self._files.items():
             value = parts[name]
             size = self._sizes[name]
             if value is None or np.size(value) != size:
                 value = np.full(size, _NAN)
             fh.write(np.asarray(value, dtype=np.float32).tobytes())
+        self._write_hands(None if detection is None else detection.points, rgb)
         self.n_frames += 1
+
+    def _write_hands(self, points, rgb) -> None:
+        """This frame's hands row: NaN now, and the frame handed to the hands' thread (the loop waits
+        only when that thread is :data:`HAND_QUEUE` frames behind: a hand is followed frame by frame,
+        so no frame is skipped)."""
+        row = self.n_frames
+        os.pwrite(self._hands_fd, _NO_HANDS.tobytes(), row * _NO_HANDS.nbytes)
+        if self._queue is not None and points is not None and rgb is not None:
+            self._queue.put((row, rgb, np.reshape(points, (-1, 3))))  # waits only when HAND_QUEUE behind
+
+    def _look(self, tracker) -> None:
+        """The hands' thread: the frames' hands, each written over its NaN row, until None comes."""
+        while (item := self._queue.get()) is not None:
+            row, rgb, points = item
+            try:
+                hands = tracker.detect(rgb, round(1000 * row / self.fps), points)
+            except Exception:  # noqa: BLE001 (a frame the landmarker fails on keeps its NaN row: seen)
+                continue
+            os.pwrite(self._hands_fd, np.ascontiguousarray(hands, dtype=np.float32).tobytes(), row * _NO_HANDS.nbytes)
 
     def _visibility(self, points: np.ndarray, hands: np.ndarray) -> np.ndarray | None:
         """(n_frames, n_landmarks) visibility from the hands found (:func:`~keyshape.capture.visibility.
