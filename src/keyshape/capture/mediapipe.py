@@ -133,12 +133,7 @@ class MediaPipeTracker:
         self.blendshape_names: tuple[str, ...] = ()
 
     def __enter__(self) -> Self:
-        _quiet_logs()
-        try:
-            with _signals_held():
-                from mediapipe.tasks.python import BaseOptions, vision
-        except ImportError:
-            raise MissingDependencyError("mediapipe") from None
+        BaseOptions, vision = _tasks()
         opts = self.options
         model = Path(opts.model_path or default_model_path())
         self._mp_image = _image_factory()
@@ -207,12 +202,7 @@ class HandTracker:
         self._landmarkers: list = []
 
     def __enter__(self) -> Self:
-        _quiet_logs()
-        try:
-            with _signals_held():
-                from mediapipe.tasks.python import BaseOptions, vision
-        except ImportError:
-            raise MissingDependencyError("mediapipe") from None
+        BaseOptions, vision = _tasks()
         self._mp_image = _image_factory()
         try:
             with _quiet_native_stderr(), _signals_held():
@@ -272,6 +262,17 @@ def _face_view(shape, face: np.ndarray | None) -> tuple[int, int, int, int] | No
     x0, y0 = np.maximum(np.floor(centre - half), 0).astype(int)
     x1, y1 = np.minimum(np.ceil(centre + half), (shape[1], shape[0])).astype(int)
     return (int(x0), int(y0), int(x1), int(y1)) if min(x1 - x0, y1 - y0) >= 32 else None
+
+
+def _tasks():
+    """MediaPipe's ``BaseOptions`` and ``vision`` tasks module, imported whole (:func:`_signals_held`)."""
+    _quiet_logs()
+    try:
+        with _signals_held():
+            from mediapipe.tasks.python import BaseOptions, vision
+    except ImportError:
+        raise MissingDependencyError("mediapipe") from None
+    return BaseOptions, vision
 
 
 @contextlib.contextmanager
