@@ -109,14 +109,9 @@ def test_a_hand_over_the_face_at_a_segment_start_is_followed_into_it(demo_clip, 
     assert 58 < plan_segments(0, 472, 3, 12)[1].share < 227
     parallel = track_video(demo_clip, progress=False, workers=3)
     _same_hands(parallel, real_track)
-    lips = np.array(mediapipe_scheme_lips())
-    assert parallel.hidden(lips)[170:220].all()
-
-
-def mediapipe_scheme_lips():
     from keyshape.schemes import mediapipe_scheme
 
-    return mediapipe_scheme()["contours"]["lips"]
+    assert parallel.hidden(np.array(mediapipe_scheme()["contours"]["lips"]))[170:220].all()
 
 
 

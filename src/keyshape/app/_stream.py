@@ -13,10 +13,9 @@ the smoothed weighted solve reads.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +67,7 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
 
         track = load_track(path) if source is None else source.load()
         if visibility == "off" and track.visibility is not None:
-            track = dataclasses.replace(track, visibility=None)
+            track = replace(track, visibility=None)
         solved = solve_take(track, keys, smoothness=smoothness,
                             upper=upper, convex=convex, max_bridge=max_bridge)
         return SolvedFile(solved.weights, solved.gaps)
