@@ -424,7 +424,7 @@ def test_sigterm_stops_cleanly_and_keeps_the_recording(demo_clip, clip_keys, tmp
         again = solve_take(recorded, keys)  # re-solved offline with the zero-lag smoother
     assert recorded.visibility is not None  # the hand over the mouth from frame 58 on: hidden, as offline
     hidden = np.any([recorded.hidden(ix) for ix in keys.regions.values()], axis=0)
-    assert hidden[60:].mean() > 0.8
+    assert hidden[70:].mean() > 0.8  # the hand covers over 30 % of a region from about frame 70 (offline: 62-69 not)
     seen = recorded.valid & ~hidden  # (a take cut while a region is hidden has no weights at its end)
     both = seen & np.isfinite(sent.values).all(axis=1)
     assert np.isfinite(again.weights.values[seen]).all() and both.sum() > 10
