@@ -21,10 +21,11 @@ import numpy as np
 from ..exceptions import InputError
 
 __all__ = ["check_track_arrays", "check_keys_data", "check_weights_table", "check_take_info", "check_glb",
-           "MAX_COORDINATE", "MAX_WEIGHT"]
+           "check_weight_values", "MAX_COORDINATE", "MAX_WEIGHT", "MAX_GAIN"]
 
 MAX_COORDINATE = 1e6  # |landmark coordinate| in pixels: beyond it a track is corrupt, not a face
 MAX_WEIGHT = 5.0  # a weight above it is no blend of key shapes (solve writes 0 <= w <= --max)
+MAX_GAIN = 100.0  # |gain| of a key on a target (map.json): beyond it no weight <= MAX_WEIGHT comes of a key's
 
 
 def _fail(path, field: str, text: str) -> InputError:
@@ -384,6 +385,25 @@ def _check_increasing_column(path, column: str, values: np.ndarray, lines: list[
         i = int(steps[0]) + 1
         raise _fail(path, f"line {lines[i]}, {column}", f"{values[i]:g} does not follow {values[i - 1]:g}: rows "
                                                         "must be in increasing frame and time order")
+
+
+def check_weight_values(path, names, values: np.ndarray, frames: np.ndarray | None = None) -> None:
+    """The rule for weights every writer of weights (CSV, glTF, USD, Live Link, Blender) applies
+    before it writes, as the weights reader does: each value of ``values (n_frames, n_channels)``
+    (named ``names``) is NaN (no estimate) or finite within ``0..MAX_WEIGHT``; else InputError
+    naming ``path``, the channel and the frame (``frames (n_frames,)``, default the row)."""
+    values = np.asarray(values, dtype=float)
+    if not values.size:
+        return
+    with np.errstate(invalid="ignore"):
+        bad = np.isinf(values) | (values < 0) | (values > MAX_WEIGHT)
+    if not bad.any():
+        return
+    row, col = (int(i) for i in np.argwhere(bad)[0])
+    frame = row if frames is None else int(np.asarray(frames)[row])
+    raise InputError(f"{path}: {list(names)[col]!r} would be written as {values[row, col]:.3g} at frame {frame}; "
+                     f"weights must be finite, within 0..{MAX_WEIGHT:g} (what keyshape reads back): lower the "
+                     "mapping's gains")
 
 
 # -- take.json and the animation ------------------------------------------------------------------
