@@ -146,3 +146,133 @@ def test_item06_every_writer_applies_the_readers_rule():
         (folder / "w.csv").unlink()
     nan = Weights(np.array([[0.0], [np.nan]]), ("jawOpen",), fps=30)  # no estimate: written empty
     assert load_weights_csv(save_weights_csv(nan, folder / "n.csv")).values[1, 0] != 0.0
+
+
+# -- Medium 8: a track's blendshape scores are checked ---------------------------------------------------
+
+
+def _with_scores(track: Path, out: Path, change) -> Path:
+    """A copy of the track file ``track`` at ``out`` with ``change(scores)`` applied to its
+    ``blendshapes (n_frames, 52)``, every other array as it was."""
+    with np.load(track) as data:
+        arrays = {name: data[name] for name in data.files}
+    change(arrays["blendshapes"])
+    np.savez(out, **arrays)
+    return out
+
+
+@pytest.mark.parametrize("change, says", [
+    (lambda s: s.fill(np.nan), "blendshapes: frame 0 has a face but no scores (NaN)"),
+    (lambda s: s.__setitem__((5, 3), 1.5), "blendshapes: frame 5 holds 1.5; scores are in [0, 1]"),
+    (lambda s: s.__setitem__((7, 3), np.nan), "blendshapes: frame 7 holds nan among its scores"),
+    (lambda s: s.__setitem__((9, 0), -np.inf), "blendshapes: frame 9 holds -inf among its scores"),
+])
+def test_item08_broken_blendshape_scores_are_refused_by_every_reader(made, tmp_path, change, says):
+    broken = _with_scores(made["track"], tmp_path / "t.npz", change)
+    for argv, out in ((["keys", broken], tmp_path / "k.json"), (["solve", broken, made["keys"]], tmp_path / "w.csv"),
+                      (["arkit", broken], tmp_path / "a.csv")):
+        done = keyshape(*argv, "-o", out)
+        one_line_error(done, 1, f"{broken}: {says}")
+        assert not out.exists()
+
+
+def test_item08_the_neutral_of_a_track_without_usable_scores_is_the_median_shape_not_frame_0():
+    """The library's rule on a Track built in memory (no file check): all-NaN scores give no
+    least-activated frame, so the median-shape rule picks the neutral (frame 0 before)."""
+    from keyshape import Track
+    from keyshape.alignment import choose_neutral_frame
+    from keyshape.alignment._neutral import least_activated
+    from keyshape.datasets import make_performance
+
+    perf = make_performance(n_frames=40, random_state=3)
+    track = perf.track
+    scores = np.full((track.n_frames, 2), np.nan)
+    unscored = Track(track.points, track.fps, blendshapes=scores, blendshape_names=("jawOpen", "mouthSmileLeft"))
+    assert least_activated(unscored) is None
+    stable = np.arange(track.n_landmarks)
+    assert choose_neutral_frame(unscored, stable=stable) == choose_neutral_frame(track, stable=stable)
+
+
+# -- Low: the readers' messages, a BOM, versions, frame rates -------------------------------------------
+
+
+@pytest.mark.parametrize("text, says", [
+    ("frame,x0,y0\n0,1,2\n1,abc,3\n", "line 3, x0: 'abc' is not a number"),
+    ("frame,x0,y0\n0,1,2\n\n1,3\n", "line 4: has 2 columns; the header has 3"),
+    ("frame,time,x0,y0\n0,0,1,2\n1.5,0.1,3,4\n", "line 3, frame: must be a whole number; got '1.5'"),
+])
+def test_low_landmark_csv_errors_name_the_line(tmp_path, text, says):
+    track = tmp_path / "t.csv"
+    track.write_text(text)
+    done = keyshape("keys", track, "-o", tmp_path / "k.json")
+    one_line_error(done, 1, f"{track}: {says}")
+
+
+def test_low_a_key_file_without_regions_is_blamed_on_regions(made, tmp_path):
+    data = json.loads(made["keys"].read_text())
+    del data["regions"]
+    keys = tmp_path / "k.json"
+    keys.write_text(json.dumps(data))
+    line = one_line_error(keyshape("solve", made["track"], keys, "-o", tmp_path / "w.csv"), 1,
+                          f"{keys}: a key file needs ")
+    assert line.endswith("it lacks 'regions'") and "format" not in line
+
+
+def test_low_sculpt_refusal_names_the_option_not_the_parameter(made, tmp_path, demo_clip):
+    kit = tmp_path / "kit"
+    kit.mkdir()
+    (kit / "README.md").write_text("sculpted")
+    rig = _tiny_rig(tmp_path / "rig") / "neutral.obj"
+    line = one_line_error(keyshape("sculpt", made["keys"], "--rig", rig, "--track", made["track"], "--video", demo_clip,
+                                   "-o", kit), 1,
+                          f"{kit}: already holds a sculpt kit")
+    assert line.endswith("replace it with --force") and "overwrite=True" not in line
+    assert (kit / "README.md").read_text() == "sculpted"
+
+
+def test_low_csv_and_json_files_with_a_byte_order_mark_are_read(made, tmp_path):
+    bom = b"\xef\xbb\xbf"
+    weights, keys, track = tmp_path / "w.csv", tmp_path / "k.json", tmp_path / "t.csv"
+    weights.write_bytes(bom + made["weights"].read_bytes())
+    keys.write_bytes(bom + made["keys"].read_bytes())
+    track.write_bytes(bom + b"frame,x0,y0\n0,1,2\n1,3,4\n")
+    key = made["weights"].read_text().splitlines()[0].split(",")[2]
+    mapping = tmp_path / "map.json"
+    mapping.write_bytes(bom + json.dumps({key: {"jawOpen": 1.0}}).encode())
+    done = keyshape("retarget", weights, "--map", mapping, "-o", tmp_path / "out.csv")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "out.csv").read_text().startswith("frame,time,jawOpen")
+    done = keyshape("solve", made["track"], keys, "-o", tmp_path / "w2.csv")
+    assert done.returncode == 0, done.stderr
+    from keyshape.io import load_track
+
+    assert load_track(track).points.tolist() == [[[1.0, 2.0]], [[3.0, 4.0]]]
+
+
+def test_low_a_track_of_a_newer_format_version_is_refused(made, tmp_path):
+    with np.load(made["track"]) as data:
+        arrays = {name: data[name] for name in data.files}
+    arrays["format_version"] = np.int64(99)
+    track = tmp_path / "t.npz"
+    np.savez(track, **arrays)
+    for argv in (["keys", track, "-o", tmp_path / "k.json"], ["solve", track, made["keys"], "-o", tmp_path / "w.csv"],
+                 ["arkit", track, "-o", tmp_path / "a.csv"]):
+        one_line_error(keyshape(*argv), 1, f"{track}: format_version: 99 is newer than this keyshape reads (1)")
+    data = json.loads(made["keys"].read_text())
+    data["version"] = 99
+    keys = tmp_path / "k99.json"
+    keys.write_text(json.dumps(data))
+    one_line_error(keyshape("solve", made["track"], keys, "-o", tmp_path / "w.csv"), 1,
+                   f"{keys}: version: 99 is newer than this keyshape reads (1)")
+    assert not list(tmp_path.glob("*.csv")) and not (tmp_path / "k.json").exists()
+
+
+def test_low_a_frame_rate_above_1000_is_refused(demo_clip, tmp_path):
+    out = tmp_path / "t.npz"
+    one_line_error(keyshape("track", demo_clip, "--fps", 2000, "-o", out), 2,
+                   "argument --fps: must be at most 1000 frames a second")
+    assert not out.exists()
+    track = tmp_path / "fast.csv"
+    track.write_text("frame,time,x0,y0\n0,0.0,1,2\n1,0.0001,3,4\n")  # 10,000 frames a second
+    one_line_error(keyshape("keys", track, "-o", tmp_path / "k.json"), 1,
+                   f"{track}: fps must be at most 1000 frames a second")

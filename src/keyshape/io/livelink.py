@@ -249,7 +249,7 @@ def read_livelink_csv(path, *, fps: float = 60.0) -> LiveLinkTake:
 def _read_rows(path: Path) -> list[list[str]]:
     existing_file(path)
     try:
-        with open(path, newline="", encoding="utf-8") as handle:
+        with open(path, newline="", encoding="utf-8-sig") as handle:  # a BOM (Excel's) is no header
             rows = list(csv.reader(handle))
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(f"{path}: not a readable CSV file ({error.__class__.__name__})") from None

@@ -120,7 +120,7 @@ def load_weights_csv(path: str | Path) -> Weights:
     frame numbers and times come from its columns, the (mean) frame rate from the times."""
     path = existing_file(path)
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM (Excel's) is no header
             text = fh.read()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: not a readable CSV file ({exc.__class__.__name__})") from None

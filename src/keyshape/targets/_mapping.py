@@ -297,7 +297,7 @@ def _read_json(path: Path):
     if not path.is_file():
         raise InputError(f"{path}: mapping file not found")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is no JSON error
     except (OSError, UnicodeDecodeError, ValueError) as error:
         raise InputError(f"{path}: not a readable JSON mapping ({error.__class__.__name__}: {error})") from None
 
