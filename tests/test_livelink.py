@@ -64,9 +64,12 @@ def test_split_and_underscore_names(tmp_path):
 
 
 def test_values_are_clipped_to_arkit_range(tmp_path):
-    weights = Weights(np.array([[1.7], [-0.2], [np.nan]]), ("jawOpen",), 60)
+    weights = Weights(np.array([[1.7], [0.25], [np.nan]]), ("jawOpen",), 60)
     back = read_livelink_csv(write_livelink_csv(tmp_path / "t.csv", weights))
-    np.testing.assert_array_equal(back.weights.values[:, LIVELINK_NAMES.index("JawOpen")], [1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(back.weights.values[:, LIVELINK_NAMES.index("JawOpen")], [1.0, 0.25, 0.0])
+    # a negative weight is no weight at all: refused, as every writer refuses it (issue 34, item 6)
+    with pytest.raises(InputError, match=r"would be written as -0\.2 at frame 1"):
+        write_livelink_csv(tmp_path / "u.csv", Weights(np.array([[1.0], [-0.2]]), ("jawOpen",), 60))
 
 
 @pytest.mark.parametrize("fps, frame, expected", [(30, 0, "00:00:00:00.000"), (30, 95, "00:00:03:05.000"),

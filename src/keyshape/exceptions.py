@@ -55,5 +55,10 @@ class RenderFallbackWarning(RuntimeWarning):
     """OpenGL (moderngl on EGL) is unavailable: the slow numpy rasteriser is used instead."""
 
 
+class ConvergenceError(KeyshapeError):
+    """A solve that stopped short of its tolerance where its result would be written (extreme
+    smoothing): reported as one line, and no file is written."""
+
+
 class NotFittedError(KeyshapeError, AttributeError):
     """An estimator used before ``fit`` (as scikit-learn's ``NotFittedError``)."""

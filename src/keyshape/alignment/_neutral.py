@@ -64,8 +64,10 @@ def least_activated(track: Track, *, regions: dict | None = None) -> int | None:
         return None
     total = scored[0]
     seen = whole_face_visible(track, regions)
-    pool = seen if seen.any() else track.valid
-    return int(np.argmin(np.where(pool & np.isfinite(total), total, np.inf)))
+    pool = (seen if seen.any() else track.valid) & np.isfinite(total)
+    if not pool.any():  # no frame of the pool is scored: the median-shape rule decides
+        return None
+    return int(np.argmin(np.where(pool, total, np.inf)))
 
 
 def choose_neutral_frame(track: Track, *, stable: np.ndarray, regions: dict | None = None) -> int:

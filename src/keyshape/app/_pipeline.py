@@ -30,6 +30,7 @@ from ..exceptions import InputError
 from ..keyshapes import MIN_REACH, add_mirrors, check_neutral_frame, extend_keyshapes, find_keyshapes, region_errors
 from ..metrics import face_scale, reconstruction_error
 from ..schemes import resolve_regions, stable_points
+from ._strict import converged
 
 __all__ = ["discover_keys", "extend_keys", "coverage", "Coverage", "solve_take", "fit_errors", "head_and_gaze",
            "arkit_scores", "key_scores", "Solved"]
@@ -288,6 +289,11 @@ def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMO
         is the paper's per-frame NNLS.
     max_bridge : seconds; with smoothing, gaps up to this long between faces are bridged by
         the smooth solve, longer ones (and gaps at the ends) hold the neutral pose (weights 0)
+
+    Raises
+    ------
+    ConvergenceError
+        The smoothed solve stopped short of its certificate (extreme ``smoothness``).
     """
     if track.n_landmarks != keys.n_landmarks or track.n_dims != keys.n_dims:
         raise InputError(
@@ -298,9 +304,11 @@ def solve_take(track: Track, keys: KeyShapes, *, smoothness: float = DEFAULT_SMO
     aligned, poses = align(track, reference=keys.neutral, stable=stable)
     gaps = gap_report(track.valid, max_bridge=int(round(max_bridge * track.fps)))
     values = np.full((track.n_frames, keys.n_keys), np.nan)
-    for start, stop in segments(gaps):  # held gaps split the take: no data, nothing to bridge
-        solved = solve_weights(aligned[start:stop], keys, upper=upper, smoothness=smoothness, convex=convex).values
-        values[start:stop] = fill_edges(solved, track.valid[start:stop])
+    with converged(smoothness):  # a smoothed solve that stops short is an error, not weights
+        for start, stop in segments(gaps):  # held gaps split the take: no data, nothing to bridge
+            solved = solve_weights(aligned[start:stop], keys, upper=upper, smoothness=smoothness,
+                                   convex=convex).values
+            values[start:stop] = fill_edges(solved, track.valid[start:stop])
     if smoothness > 0:
         values = hold_neutral(values, gaps)
     weights = Weights(values, keys.names, track.fps, track.frame_index, track.time)

@@ -133,12 +133,13 @@ def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit:
     return SculptKit(folder, folder / GLB, folder / SHEET, folder / README)
 
 
-def check_kit_folder(folder, *, overwrite: bool = False) -> None:
-    """Refuse a ``folder`` that holds a kit already (any of its files), unless ``overwrite``."""
+def check_kit_folder(folder, *, overwrite: bool = False, replace: str = "overwrite=True") -> None:
+    """Refuse a ``folder`` that holds a kit already (any of its files), unless ``overwrite``;
+    ``replace`` names how to replace it, as the caller spells it (the command line: ``--force``)."""
     existing = [name for name in (GLB, SHEET, README) if (Path(folder) / name).exists()]
     if existing and not overwrite:
         raise InputError(f"{folder}: already holds a sculpt kit ({', '.join(existing)}), maybe sculpted; "
-                         "choose another folder, or replace it with --force (overwrite=True)")
+                         f"choose another folder, or replace it with {replace}")
 
 
 def _check_track(keys: KeyShapes, track: Track) -> None:

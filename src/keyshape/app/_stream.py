@@ -28,6 +28,7 @@ from ..defaults import DEFAULT_SMOOTHNESS, DEFAULT_UPPER
 from ..exceptions import InputError
 from ..io import TrackFile, load_track, open_track
 from ..schemes import stable_points
+from ._strict import converged
 
 __all__ = ["solve_track_file", "SolvedFile"]
 
@@ -75,9 +76,10 @@ def solve_track_file(path: str | Path, keys: KeyShapes, *, smoothness: float = D
     face = _reduce(source, keys, take, chunk)
     gaps = gap_report(face, max_bridge=int(round(max_bridge * source.fps)))
     values = np.full((source.n_frames, keys.n_keys), np.nan)
-    for start, stop in segments(gaps):  # held gaps split the take, as in solve_take
-        solved = take.solve(start, stop, upper=upper, smoothness=smoothness, convex=convex)
-        values[start:stop] = fill_edges(solved, face[start:stop])
+    with converged(smoothness):  # as in solve_take: converged weights or one line
+        for start, stop in segments(gaps):  # held gaps split the take, as in solve_take
+            solved = take.solve(start, stop, upper=upper, smoothness=smoothness, convex=convex)
+            values[start:stop] = fill_edges(solved, face[start:stop])
     if smoothness > 0:
         values = hold_neutral(values, gaps)
     return SolvedFile(Weights(values, keys.names, source.fps, source.frame_index, source.time), gaps)

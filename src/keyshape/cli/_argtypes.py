@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-__all__ = ["bound", "weight_bound", "non_negative", "positive", "whole", "regions"]
+__all__ = ["bound", "weight_bound", "non_negative", "positive", "frame_rate", "whole", "regions"]
 
 
 def _number(text: str) -> float:
@@ -58,6 +58,18 @@ def positive(text: str) -> float:
     value = _number(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"must be > 0; got {value:g}")
+    return value
+
+
+def frame_rate(text: str) -> float:
+    """A frame rate: > 0 and at most ``MAX_FPS`` (1000), what a track file holds (frames are timed in
+    whole milliseconds)."""
+    from ..io.validate import MAX_FPS
+
+    value = positive(text)
+    if value > MAX_FPS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_FPS:g} frames a second (frames are timed in whole "
+                                         f"milliseconds); got {value:g}")
     return value
 
 

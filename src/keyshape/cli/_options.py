@@ -17,7 +17,7 @@ from ..defaults import (
     MAX_KEYS,
 )
 from ..exceptions import UsageError
-from ._argtypes import non_negative, positive, regions, weight_bound, whole
+from ._argtypes import frame_rate, non_negative, positive, regions, weight_bound, whole
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):
@@ -85,7 +85,7 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", type=whole(0), default=0, metavar="FRAME", help="first frame to track (default 0)")
     p.add_argument("--end", type=whole(1), default=None, metavar="FRAME",
                    help="stop before this frame (default: the last frame)")
-    p.add_argument("--fps", type=positive, default=None,
+    p.add_argument("--fps", type=frame_rate, default=None,
                    help="frame rate override (image folders default to 30); frames are then timed "
                         "at i / FPS instead of by the video's own timestamps")
     p.add_argument("--face", type=whole(0, 16), default=0, metavar="N",

@@ -43,7 +43,7 @@ def run(args) -> None:
 
     keys = load_keys(args.keys)
     video = _video(args)
-    check_kit_folder(args.output, overwrite=args.force)  # before any tracking
+    check_kit_folder(args.output, overwrite=args.force, replace="--force")  # before any tracking
     _check_rig(args.rig)
     track = _track(args, video)
     kit = write_sculpt_kit(keys, args.rig, args.output, track=track, video=video,

@@ -70,6 +70,7 @@ from ._gltf_read import (
     target_names,
 )
 from .atomic import atomic_path
+from .validate import check_weight_values
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
            "read_meshes", "read_colours", "eye_nodes", "GlbAnimation", "Part"]
@@ -128,6 +129,7 @@ def write_glb(path, rig: Rig, weights: Weights, *, poses: Poses | None = None,
     path = Path(path)
     _check_suffix(path)
     check_names(rig.names, weights)
+    check_weight_values(path, weights.names, weights.values, weights.frame_index)
     if rig.n_targets == 0:
         raise RigError("the rig has no morph targets to animate")
     check_poses(poses, weights)
@@ -248,6 +250,7 @@ def animate_gltf(source, weights: Weights, path, *, poses: Poses | None = None,
     """
     path, source = Path(path), Path(source)
     _check_suffix(path)
+    check_weight_values(path, weights.names, weights.values, weights.frame_index)
     check_poses(poses, weights)
     check_eyes(eyes, weights)
     document, buffers = load_document(source)

@@ -98,7 +98,7 @@ def load_keys(path: str | Path) -> KeyShapes:
     """Read a key file written by ``keyshape keys``."""
     path = existing_file(path)
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is no JSON error
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise InputError(f"{path}: not a readable JSON key file ({exc.__class__.__name__})") from None
     check_keys_data(path, data)

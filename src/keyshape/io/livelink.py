@@ -34,6 +34,7 @@ from ..containers import Poses, Weights
 from ..exceptions import InputError, RigError
 from ..schemes import head_rotations, hold_valid, rotations_to_gltf
 from .atomic import atomic_path, existing_file
+from .validate import check_weight_values
 
 __all__ = ["LIVELINK_NAMES", "ROTATION_NAMES", "write_livelink_csv", "read_livelink_csv",
            "livelink_columns", "LiveLinkTake"]
@@ -150,6 +151,7 @@ def write_livelink_csv(path, weights: Weights, *, poses: Poses | None = None,
     if not sources:
         raise RigError(f"no ARKit-named targets among {list(weights.names)[:12]}...: Live Link Face "
                        "needs names such as jawOpen, eyeBlinkLeft or eyeBlink_L")
+    check_weight_values(path, weights.names, weights.values, weights.frame_index)
     check_poses(poses, weights)
     check_eyes(eyes, weights)
     table = _coefficients(weights, sources)
@@ -247,7 +249,7 @@ def read_livelink_csv(path, *, fps: float = 60.0) -> LiveLinkTake:
 def _read_rows(path: Path) -> list[list[str]]:
     existing_file(path)
     try:
-        with open(path, newline="", encoding="utf-8") as handle:
+        with open(path, newline="", encoding="utf-8-sig") as handle:  # a BOM (Excel's) is no header
             rows = list(csv.reader(handle))
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(f"{path}: not a readable CSV file ({error.__class__.__name__})") from None

@@ -90,7 +90,11 @@ def load_rig(path, *, unit: float = 1.0) -> Rig:
     if suffix in GLTF_SUFFIXES:
         from .gltf import read_rig
 
-        return read_rig(path)
+        try:
+            return read_rig(path)
+        except (IndexError, KeyError, TypeError, AttributeError, OverflowError, ZeroDivisionError,
+                FloatingPointError) as error:  # a field missing or of the wrong kind, deep in the file
+            raise RigError(f"{path}: a damaged glTF file ({error.__class__.__name__}: {error})") from None
     if suffix in USD_SUFFIXES:
         from .usd import read_rig
 
@@ -150,7 +154,10 @@ def read_obj(path) -> tuple[np.ndarray, np.ndarray]:
         text = Path(path).read_text(encoding="utf-8", errors="replace")
     except OSError as error:
         raise InputError(f"{path}: cannot read ({error.__class__.__name__})") from None
-    return _read_obj_fast(text) or _read_obj_checked(text.splitlines(), path)
+    vertices, faces = _read_obj_fast(text) or _read_obj_checked(text.splitlines(), path)
+    if not len(vertices):
+        raise InputError(f"{path}: an OBJ mesh needs vertices ('v x y z' lines); it has none")
+    return vertices, faces
 
 
 _VERTEX = re.compile(r"^v[ \t]+([^\n]*)", re.MULTILINE)

@@ -49,7 +49,7 @@ def load_take_info(folder: str | Path) -> dict:
     if not path.is_file():
         raise InputError(f"{folder}: no take.json here; is it an output folder of `keyshape run`?")
     try:
-        info = json.loads(path.read_text())
+        info = json.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is no JSON error
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise InputError(f"{path}: not valid JSON ({exc.__class__.__name__}: {exc})") from None
     check_take_info(path, info)

@@ -20,11 +20,11 @@ import numpy as np
 from ..containers import Track
 from ..exceptions import InputError
 from .atomic import atomic_path, existing_file
-from .validate import PointsCheck, check_track_arrays
+from .validate import TRACK_FORMAT_VERSION, PointsCheck, check_track_arrays
 
 __all__ = ["save_track", "load_track", "open_track", "TrackFile"]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = TRACK_FORMAT_VERSION
 _BLOCK_BYTES = 1 << 19  # read by TrackFile.chunks at a time: half a core's L2 cache (90 frames of 478 landmarks)
 
 
@@ -163,6 +163,7 @@ class TrackFile:
     visibility: np.ndarray | None
     _offset: int | None
     _dtype: np.dtype
+    _scored: np.ndarray | None = None  # (n_frames,) bool, the frames with blendshape scores (None: no scores)
 
     n_frames = property(lambda self: self.shape[0])
     n_landmarks = property(lambda self: self.shape[1])
@@ -182,7 +183,7 @@ class TrackFile:
         memory once.
         """
         landmarks = np.asarray(landmarks, dtype=np.intp)
-        check = PointsCheck(self.path)
+        check = PointsCheck(self.path, self._scored)
         block = max(1, _BLOCK_BYTES // max(self.n_landmarks * self.n_dims * self._dtype.itemsize, 1))
         with _points_file(self.path, self._offset) as fh:
             buffer = np.empty((min(frames, self.n_frames), *self.shape[1:]), dtype=self._dtype)
@@ -224,8 +225,10 @@ def open_track(path: str | Path) -> TrackFile | None:
     arrays = _read_npz(path, skip="points")
     arrays["points"] = np.broadcast_to(np.zeros((), dtype=dtype), shape)  # its shape and type, no data
     check_track_arrays(path, arrays, points_values=False)
+    scores = arrays.get("blendshapes")
+    scored = None if scores is None else np.isfinite(scores).all(axis=1)  # checked: all finite or all NaN
     return TrackFile(path, tuple(shape), float(np.asarray(arrays["fps"]).reshape(-1)[0]), arrays.get("frame_index"),
-                     arrays.get("time"), arrays.get("visibility"), offset, dtype)
+                     arrays.get("time"), arrays.get("visibility"), offset, dtype, scored)
 
 
 class _NotStreamable(Exception):
@@ -294,6 +297,22 @@ def _read_into(fh, array: np.ndarray, path: Path) -> None:
         done += n
 
 
+def _csv_row(path: Path, line: int, row: list[str], header: list[str]) -> list[float]:
+    """The numbers of one landmark CSV row (line ``line`` of the file), empty cells NaN; a whole
+    frame number first. InputError naming the line and the column otherwise."""
+    if len(row) != len(header):
+        raise InputError(f"{path}: line {line}: has {len(row)} columns; the header has {len(header)}")
+    values = []
+    for name, text in zip(header, row, strict=True):
+        try:
+            values.append(float(text) if text.strip() else np.nan)
+        except ValueError:
+            raise InputError(f"{path}: line {line}, {name}: {text!r} is not a number") from None
+    if not (np.isfinite(values[0]) and float(values[0]).is_integer()):
+        raise InputError(f"{path}: line {line}, frame: must be a whole number; got {row[0]!r}")
+    return values
+
+
 def _csv_layout(path: Path, header: list[str]) -> tuple[int, int]:
     """(first coordinate column, n_dims) from a landmark CSV header."""
     if not header or header[0] != "frame":
@@ -311,25 +330,20 @@ def _load_csv_track(path: Path, fps: float | None) -> Track:
     import csv
 
     try:
-        with open(path, newline="") as fh:
-            rows = [r for r in csv.reader(fh) if r]
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM (Excel's) is no header
+            reader = csv.reader(fh)
+            rows = [(reader.line_num, r) for r in reader if r]  # (line of the file, cells): for the messages
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(f"{path}: not a readable CSV file ({exc.__class__.__name__})") from None
     if len(rows) < 2:
         raise InputError(f"{path}: a landmark CSV needs a header and at least one row")
-    first, n_dims = _csv_layout(path, rows[0])
-    try:
-        table = np.array([[float(c) if c.strip() else np.nan for c in r] for r in rows[1:]])
-    except ValueError as exc:
-        raise InputError(f"{path}: {exc}") from None
-    if table.ndim != 2 or table.shape[1] != len(rows[0]):
-        raise InputError(f"{path}: every row needs {len(rows[0])} columns")
+    header = rows[0][1]
+    first, n_dims = _csv_layout(path, header)
+    table = np.array([_csv_row(path, line, row, header) for line, row in rows[1:]]).reshape(-1, len(header))
     if first == 2 and len(table) > 1 and table[-1, 1] > table[0, 1]:
         fps = (len(table) - 1) / (table[-1, 1] - table[0, 1])
     points = table[:, first:].reshape(len(table), -1, n_dims)
     frames = table[:, 0]
-    if not (np.isfinite(frames) & (frames == np.round(frames))).all():
-        raise InputError(f"{path}: frame: every row needs a whole frame number")
     arrays = {"points": points, "fps": np.float64(fps or 30.0), "frame_index": frames.astype(np.int64)}
     if first == 2:
         arrays["time"] = table[:, 1]

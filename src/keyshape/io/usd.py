@@ -33,6 +33,7 @@ from ..exceptions import InputError, RigError
 from ._pxr import pxr as _pxr
 from ._usd_read import ANIMATION, UsdAnimation, check_usd, deformed_points, open_stage, read_rig, read_usd_animation
 from .atomic import atomic_path
+from .validate import check_weight_values
 
 __all__ = ["write_usd", "animate_usd", "read_rig", "read_usd_animation", "deformed_points", "check_usd",
            "UsdAnimation", "USD_SUFFIXES"]
@@ -76,6 +77,7 @@ def write_usd(path, rig: Rig, weights: Weights, *, poses: Poses | None = None) -
     if path.suffix.lower() not in USD_SUFFIXES:
         raise InputError(f"USD output must end in one of {USD_SUFFIXES}; got {str(path)!r}")
     check_names(rig.names, weights)
+    check_weight_values(path, weights.names, weights.values, weights.frame_index)
     check_poses(poses, weights)
     quats = None if poses is None else pose_quaternions(poses)
     stage = _build_stage(rig, weights, quats)
@@ -251,6 +253,7 @@ def animate_usd(source, weights: Weights, path, *, poses: Poses | None = None) -
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
         raise InputError(f"USD output must end in one of {USD_SUFFIXES}; got {str(path)!r}")
+    check_weight_values(path, weights.names, weights.values, weights.frame_index)
     check_poses(poses, weights)
     stage = Usd.Stage.Open(open_stage(source).Flatten())
     skeletons = _bound_skeletons(stage, source)

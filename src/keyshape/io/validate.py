@@ -21,10 +21,16 @@ import numpy as np
 from ..exceptions import InputError
 
 __all__ = ["check_track_arrays", "check_keys_data", "check_weights_table", "check_take_info", "check_glb",
-           "MAX_COORDINATE", "MAX_WEIGHT"]
+           "check_weight_values", "MAX_COORDINATE", "MAX_WEIGHT", "MAX_GAIN", "MAX_FPS", "TRACK_FORMAT_VERSION"]
 
 MAX_COORDINATE = 1e6  # |landmark coordinate| in pixels: beyond it a track is corrupt, not a face
 MAX_WEIGHT = 5.0  # a weight above it is no blend of key shapes (solve writes 0 <= w <= --max)
+MAX_FRAME = 10**12  # a source frame number beyond it is corrupt (ten years at 1000 frames a second)
+MAX_TIME = 1e9  # |time| in seconds: beyond it a take's clock is corrupt
+MAX_FPS = 1000.0  # frames a second: capture times frames in whole milliseconds
+TRACK_FORMAT_VERSION = 1  # the newest track file layout this keyshape reads (and writes)
+FILE_VERSION = 1  # the newest "version" of keys.json and take.json this keyshape reads (and writes)
+MAX_GAIN = 100.0  # |gain| of a key on a target (map.json): beyond it no weight <= MAX_WEIGHT comes of a key's
 
 
 def _fail(path, field: str, text: str) -> InputError:
@@ -54,15 +60,17 @@ def check_track_arrays(path, arrays: dict[str, np.ndarray], *, points_values: bo
     if not _numeric(points) or points.ndim != 3 or points.shape[2] not in (2, 3) or 0 in points.shape[:2]:
         raise _fail(path, "points", f"must have shape (n_frames, n_landmarks, 2 or 3), numbers; got "
                                     f"{points.shape} {points.dtype}")
-    if points_values:
-        _check_points_values(path, points)
     _check_fps(path, arrays["fps"])
+    if "format_version" in arrays:
+        _check_track_version(path, arrays["format_version"])
     n = points.shape[0]
     if "frame_index" in arrays:
         _check_increasing(path, "frame_index", arrays["frame_index"], n, integer=True)
     if "time" in arrays:
         _check_increasing(path, "time", arrays["time"], n, integer=False)
-    _check_track_extras(path, arrays, n)
+    scored = _check_track_extras(path, arrays, n)
+    if points_values:
+        _check_points_values(path, points, scored)
 
 
 def _numeric(array: np.ndarray) -> bool:
@@ -72,8 +80,8 @@ def _numeric(array: np.ndarray) -> bool:
 _CHECK_FRAMES = 4096  # frames checked at a time: the temporaries stay small however long the take
 
 
-def _check_points_values(path, points: np.ndarray) -> None:
-    check = PointsCheck(path)
+def _check_points_values(path, points: np.ndarray, scored: np.ndarray | None = None) -> None:
+    check = PointsCheck(path, scored)
     for lo in range(0, points.shape[0], _CHECK_FRAMES):
         check.add(lo, points[lo : lo + _CHECK_FRAMES])
     check.finish()
@@ -84,11 +92,14 @@ class PointsCheck:
 
     :meth:`add` returns each chunk's faces (frames all finite); :meth:`finish` raises what the
     whole array would have: a non-finite value that is not NaN first, then a coordinate beyond
-    ±:data:`MAX_COORDINATE`, then a take without a face (the first frame of each, in order).
+    ±:data:`MAX_COORDINATE`, then a take without a face (the first frame of each, in order), then
+    a frame with a face but no scores, when ``scored`` (n_frames,) bool (the frames whose
+    ``blendshapes`` are finite, :func:`blendshape_rows`) is given.
     """
 
-    def __init__(self, path):
+    def __init__(self, path, scored: np.ndarray | None = None):
         self.path, self.bad, self.large, self.faces, self.n_frames = path, None, None, 0, 0
+        self.scored, self.unscored = scored, None
 
     @staticmethod
     def extremes(chunk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +114,10 @@ class PointsCheck:
         flat = _as_float(chunk).reshape(len(chunk), -1)
         high, low = self.extremes(chunk) if extremes is None else extremes
         face = np.isfinite(high) & np.isfinite(low)
+        if self.scored is not None and self.unscored is None:
+            missing = np.flatnonzero(face & ~self.scored[lo : lo + len(face)])
+            if missing.size:
+                self.unscored = lo + int(missing[0])
         self.faces += int(face.sum())
         self.n_frames += len(face)
         rest = np.flatnonzero(~face)  # frames without a face, or partly finite: looked at closely
@@ -129,6 +144,9 @@ class PointsCheck:
                                              f"±{MAX_COORDINATE:g} pixels")
         if not self.faces:
             raise _fail(self.path, "points", f"no frame has a face (all {self.n_frames} frames are NaN)")
+        if self.unscored is not None:
+            raise _fail(self.path, "blendshapes", f"frame {self.unscored} has a face but no scores (NaN): the "
+                                                  "tracker scores every frame it finds a face in")
 
 
 def _as_float(chunk: np.ndarray) -> np.ndarray:
@@ -140,6 +158,27 @@ def _check_fps(path, fps) -> None:
     if fps.size != 1 or not _numeric(fps) or not math.isfinite(float(fps.reshape(-1)[0])) \
             or not float(fps.reshape(-1)[0]) > 0:
         raise _fail(path, "fps", f"must be a positive number; got {_show(fps.tolist())}")
+    if float(fps.reshape(-1)[0]) > MAX_FPS:
+        raise _fail(path, "fps", f"must be at most {MAX_FPS:g} frames a second (frames are timed in whole "
+                                 f"milliseconds); got {float(fps.reshape(-1)[0]):g}")
+
+
+def _check_track_version(path, version) -> None:
+    version = np.asarray(version)
+    if version.shape != () or not np.issubdtype(version.dtype, np.integer) or not 1 <= int(version):
+        raise _fail(path, "format_version", f"must be a whole number >= 1; got {_show(version.tolist())}")
+    if int(version) > TRACK_FORMAT_VERSION:
+        raise _fail(path, "format_version", f"{int(version)} is newer than this keyshape reads "
+                                            f"({TRACK_FORMAT_VERSION}): a newer keyshape wrote it")
+
+
+def _check_version(path, data: dict) -> None:
+    """A ``"version"`` (of keys.json, take.json), where given: a whole number this keyshape reads."""
+    version = data.get("version", 1)
+    _whole(path, "version", version, low=1)
+    if version > FILE_VERSION:
+        raise _fail(path, "version", f"{version} is newer than this keyshape reads ({FILE_VERSION}): a newer "
+                                     "keyshape wrote it")
 
 
 def _check_increasing(path, name: str, values, n: int, *, integer: bool) -> None:
@@ -149,8 +188,10 @@ def _check_increasing(path, name: str, values, n: int, *, integer: bool) -> None
     if not ok_type or values.shape != (n,):
         raise _fail(path, name, f"must be {n} {kind} (one per frame); got {values.shape} {values.dtype}")
     v = values.astype(float)
-    if not np.isfinite(v).all() or (integer and (v < 0).any()):
-        i = int(np.flatnonzero(~np.isfinite(v) | (v < 0))[0])
+    with np.errstate(invalid="ignore"):
+        out = ~np.isfinite(v) | ((v < 0) | (v > MAX_FRAME) if integer else np.abs(v) > MAX_TIME)
+    if out.any():
+        i = int(np.flatnonzero(out)[0])
         raise _fail(path, name, f"frame {i} holds {_show(values[i])}")
     steps = np.flatnonzero(np.diff(v) <= 0)
     if steps.size:
@@ -159,17 +200,21 @@ def _check_increasing(path, name: str, values, n: int, *, integer: bool) -> None
                                 f"after {_show(values[i - 1])}")
 
 
-def _check_track_extras(path, arrays: dict, n: int) -> None:
+def _check_track_extras(path, arrays: dict, n: int) -> np.ndarray | None:
+    """Check the optional arrays; returns the (n,) bool frames with scores (None without scores)."""
     size = arrays.get("image_size")
     if size is not None and (size.shape != (2,) or not np.issubdtype(size.dtype, np.integer) or (size <= 0).any()):
         raise _fail(path, "image_size", f"must be (width, height) > 0; got {_show(size.tolist())}")
-    scores = arrays.get("blendshapes")
+    scores, scored = arrays.get("blendshapes"), None
     if scores is not None:
         if not _numeric(scores) or scores.ndim != 2 or scores.shape[0] != n:
             raise _fail(path, "blendshapes", f"must have shape ({n}, n_scores); got {scores.shape}")
-        names = arrays.get("blendshape_names")
-        if names is not None and names.shape != (scores.shape[1],):
-            raise _fail(path, "blendshape_names", f"must name the {scores.shape[1]} scores; got {names.shape}")
+        scored = blendshape_rows(path, scores)
+    names = arrays.get("blendshape_names")
+    if names is not None and (names.ndim != 1 or names.dtype.kind not in "US"
+                              or (scores is not None and names.shape != (scores.shape[1],))):
+        count = "the scores" if scores is None else f"the {scores.shape[1]} scores"
+        raise _fail(path, "blendshape_names", f"must be strings naming {count}; got {names.shape} {names.dtype}")
     matrix = arrays.get("head_matrix")
     if matrix is not None and (not _numeric(matrix) or matrix.shape != (n, 4, 4)):
         raise _fail(path, "head_matrix", f"must have shape ({n}, 4, 4); got {matrix.shape}")
@@ -178,6 +223,27 @@ def _check_track_extras(path, arrays: dict, n: int) -> None:
                              or not _within(seen, 0.0, 1.0)):
         raise _fail(path, "visibility", f"must be (n_frames, n_landmarks) = ({n}, {arrays['points'].shape[1]}) "
                                         f"values in [0, 1]; got shape {seen.shape}")
+    return scored
+
+
+def blendshape_rows(path, scores: np.ndarray) -> np.ndarray:
+    """The ``(n_frames,)`` bool frames of ``scores (n_frames, n_scores)`` that have scores: each
+    frame's scores are all in ``[0, 1]`` (the tracker's probabilities) or all NaN (no face);
+    else InputError naming the first bad frame."""
+    values = _as_float(scores)
+    finite = np.isfinite(values)
+    scored = finite.all(axis=1)
+    partial = np.flatnonzero(~scored & (finite.any(axis=1) | np.isinf(values).any(axis=1)))
+    if partial.size:
+        i = int(partial[0])
+        bad = values[i][~np.isfinite(values[i])][0]
+        raise _fail(path, "blendshapes", f"frame {i} holds {_show(bad)} among its scores (a frame without a "
+                                         "face has all its scores NaN)")
+    if scored.any() and not _within(values[scored], 0.0, 1.0):
+        outside = scored[:, None] & ((values < 0.0) | (values > 1.0))
+        i, j = (int(k) for k in np.argwhere(outside)[0])
+        raise _fail(path, "blendshapes", f"frame {i} holds {values[i, j]:.3g}; scores are in [0, 1]")
+    return scored
 
 
 def _within(values: np.ndarray, low: float, high: float) -> bool:
@@ -193,6 +259,11 @@ def check_keys_data(path, data) -> None:
     one finite shape per key of its region's size."""
     if not isinstance(data, dict) or data.get("format") != "keyshape-keys":
         raise InputError(f"{path}: not a keyshape key file (expected \"format\": \"keyshape-keys\")")
+    _check_version(path, data)
+    missing = [name for name in _KEYS_FIELDS if name not in data]
+    if missing:
+        raise InputError(f"{path}: a key file needs {', '.join(map(repr, _KEYS_FIELDS))}; it lacks "
+                         f"{', '.join(map(repr, missing))}")
     n_landmarks = _whole(path, "n_landmarks", data.get("n_landmarks"), low=1)
     n_dims = data.get("n_dims")
     if n_dims not in (2, 3) or isinstance(n_dims, bool):
@@ -210,6 +281,9 @@ def check_keys_data(path, data) -> None:
     if stable is not None:
         _indices(path, "stable", stable, n_landmarks)
     _check_mirrors(path, data["regions"], names)
+
+
+_KEYS_FIELDS = ("n_landmarks", "n_dims", "neutral", "regions", "shapes")  # what keys_to_dict always writes
 
 
 def _whole(path, field: str, value, *, low: int) -> int:
@@ -340,6 +414,7 @@ def _plain_weights_table(text: str) -> tuple[list[str], np.ndarray] | None:
         return None
     frames, times, values = table[:, 0], table[:, 1], table[:, 2:]
     if not np.isfinite(table[:, :2]).all() or (frames < 0).any() or (frames != np.round(frames)).any() \
+            or (frames > MAX_FRAME).any() or (np.abs(times) > MAX_TIME).any() \
             or (np.diff(frames) <= 0).any() or (np.diff(times) <= 0).any():
         return None
     if ((values < 0) | (values > MAX_WEIGHT)).any():  # NaN (empty) compares False
@@ -351,10 +426,12 @@ def _weights_row(path, line: int, row: list[str], names: list[str]) -> list[floa
     if len(row) != len(names) + 2:
         raise _fail(path, f"line {line}", f"has {len(row)} columns; the header has {len(names) + 2}")
     frame, time = _cell(path, line, "frame", row[0]), _cell(path, line, "time", row[1])
-    if frame is None or not float(frame).is_integer() or frame < 0:
-        raise _fail(path, f"line {line}, frame", f"must be a whole number >= 0; got {row[0]!r}")
+    if frame is None or not float(frame).is_integer() or not 0 <= frame <= MAX_FRAME:
+        raise _fail(path, f"line {line}, frame", f"must be a whole number in 0..{MAX_FRAME:.0e}; got {row[0]!r}")
     if time is None:
         raise _fail(path, f"line {line}, time", "is empty")
+    if abs(time) > MAX_TIME:
+        raise _fail(path, f"line {line}, time", f"{row[1].strip()} is beyond ±{MAX_TIME:g} seconds")
     values = []
     for name, text in zip(names, row[2:]):
         value = _cell(path, line, name, text)
@@ -386,6 +463,25 @@ def _check_increasing_column(path, column: str, values: np.ndarray, lines: list[
                                                         "must be in increasing frame and time order")
 
 
+def check_weight_values(path, names, values: np.ndarray, frames: np.ndarray | None = None) -> None:
+    """The rule for weights every writer of weights (CSV, glTF, USD, Live Link, Blender) applies
+    before it writes, as the weights reader does: each value of ``values (n_frames, n_channels)``
+    (named ``names``) is NaN (no estimate) or finite within ``0..MAX_WEIGHT``; else InputError
+    naming ``path``, the channel and the frame (``frames (n_frames,)``, default the row)."""
+    values = np.asarray(values, dtype=float)
+    if not values.size:
+        return
+    with np.errstate(invalid="ignore"):
+        bad = np.isinf(values) | (values < 0) | (values > MAX_WEIGHT)
+    if not bad.any():
+        return
+    row, col = (int(i) for i in np.argwhere(bad)[0])
+    frame = row if frames is None else int(np.asarray(frames)[row])
+    raise InputError(f"{path}: {list(names)[col]!r} would be written as {values[row, col]:.3g} at frame {frame}; "
+                     f"weights must be finite, within 0..{MAX_WEIGHT:g} (what keyshape reads back): lower the "
+                     "mapping's gains")
+
+
 # -- take.json and the animation ------------------------------------------------------------------
 
 def check_take_info(path, info) -> None:
@@ -394,6 +490,7 @@ def check_take_info(path, info) -> None:
     ``neutral_frame`` and ``image_size``."""
     if not isinstance(info, dict) or info.get("format") != "keyshape-take":
         raise InputError(f"{path}: not a keyshape take description (expected \"format\": \"keyshape-take\")")
+    _check_version(path, info)
     fps = info.get("fps", 1.0)  # fps and n_frames: what `run` writes; a hand-made one may name only the video
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or not fps > 0:
         raise _fail(path, "fps", f"must be a positive number; got {_show(fps)}")

@@ -11,7 +11,7 @@ import numpy as np
 from ..containers import Weights
 from ..exceptions import InputError
 from .atomic import atomic_path, existing_file
-from .validate import check_weights_text
+from .validate import check_weight_values, check_weights_text
 
 __all__ = ["save_weights_csv", "load_weights_csv"]
 
@@ -102,7 +102,10 @@ def _rows(frames: np.ndarray, times: np.ndarray, values: np.ndarray) -> str:
 
 def save_weights_csv(weights: Weights, path: str | Path) -> Path:
     """Write ``weights`` as CSV, atomically: ``frame`` is the source frame number of each row and
-    ``time`` its source time in seconds (``weights.frame_index`` and ``weights.time``)."""
+    ``time`` its source time in seconds (``weights.frame_index`` and ``weights.time``); every
+    weight NaN (written empty) or within ``0..MAX_WEIGHT``, as the reader takes them
+    (:func:`keyshape.io.validate.check_weight_values`)."""
+    check_weight_values(path, weights.names, weights.values, weights.frame_index)
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         csv.writer(fh).writerow(["frame", "time", *weights.names])
         rows = max(1, _CELLS // (weights.n_channels + 2))
@@ -117,7 +120,7 @@ def load_weights_csv(path: str | Path) -> Weights:
     frame numbers and times come from its columns, the (mean) frame rate from the times."""
     path = existing_file(path)
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM (Excel's) is no header
             text = fh.read()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: not a readable CSV file ({exc.__class__.__name__})") from None

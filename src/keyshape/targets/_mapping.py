@@ -20,7 +20,9 @@ tracker's score of that name less ``rest`` (gaze on its own channel, not through
 Retargeting carries weights only: it assumes nothing about the rig's scale, orientation or
 topology. The targets themselves say how far each vertex moves at weight 1; a key's gain scales
 that. Weights are not clipped above (a gain above 1, or several keys on one target, may exceed 1);
-with an offset they are clipped below at 0.
+with an offset they are clipped below at 0. A gain is at most 100 (``MAX_GAIN``), and every writer
+refuses a weight outside ``0..5`` (``MAX_WEIGHT``, what keyshape reads back): an animation of
+``inf`` or of a 300-digit number is never written.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import numpy as np
 
 from ..containers import Weights
 from ..exceptions import InputError, RigError
+from ..io.validate import MAX_GAIN
 
 __all__ = ["Mapping", "retarget", "drive_gaze"]
 
@@ -51,7 +54,7 @@ class Mapping:
 
     Attributes
     ----------
-    matrix : (n_targets, n_keys) float, ≥ ``-offset``
+    matrix : (n_targets, n_keys) float, ≥ ``-offset`` and ≤ :data:`~keyshape.io.validate.MAX_GAIN` (100)
         ``matrix[t, k]`` is the gain with which key ``k`` drives target ``t``.
     sources : tuple of n_keys str
         Key names (the columns).
@@ -88,9 +91,9 @@ class Mapping:
         offset = np.zeros(len(targets)) if self.offset is None else np.asarray(self.offset, dtype=float)
         if offset.shape != (len(targets),) or not np.isfinite(offset).all() or (offset < 0).any():
             raise InputError(f"offset must be {len(targets)} finite numbers >= 0; got {self.offset!r}")
-        if not np.isfinite(matrix).all() or (matrix + offset[:, None] < 0).any():
-            raise InputError(f"mapping gains must be finite and >= 0 (>= -offset with an offset); "
-                             f"got min {np.nanmin(matrix, initial=0):g}")
+        if not np.isfinite(matrix).all() or (matrix + offset[:, None] < 0).any() or (matrix > MAX_GAIN).any():
+            raise InputError(f"mapping gains must be finite, >= 0 (>= -offset with an offset) and <= {MAX_GAIN:g}; "
+                             f"got {np.nanmin(matrix, initial=0):g} ... {np.nanmax(matrix, initial=0):g}")
         for label, names in (("key", sources), ("target", targets)):
             duplicates = sorted({n for n in names if names.count(n) > 1})
             if duplicates:
@@ -294,7 +297,7 @@ def _read_json(path: Path):
     if not path.is_file():
         raise InputError(f"{path}: mapping file not found")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is no JSON error
     except (OSError, UnicodeDecodeError, ValueError) as error:
         raise InputError(f"{path}: not a readable JSON mapping ({error.__class__.__name__}: {error})") from None
 
@@ -323,9 +326,10 @@ def _gain(value, key: str, target: str, offset: float = 0.0) -> float:
         gain = float(value)
     except (TypeError, ValueError):
         raise InputError(f"gain for key {key!r} -> target {target!r} must be a number; got {value!r}") from None
-    if not np.isfinite(gain) or gain < -offset:
+    if not np.isfinite(gain) or gain < -offset or gain > MAX_GAIN:
         floor = f"-{offset:g} (its offset)" if offset else "0"
-        raise InputError(f"gain for key {key!r} -> target {target!r} must be finite and >= {floor}; got {value!r}")
+        raise InputError(f"gain for key {key!r} -> target {target!r} must be a finite number in {floor}..{MAX_GAIN:g}; "
+                         f"got {value!r}")
     return gain
 
 
