@@ -90,7 +90,7 @@ def _same_hands(parallel, sequential):
     """The hands found in each worker give the sequential visibility, within the tracking noise."""
     from keyshape.schemes import mediapipe_scheme
 
-    # (the face view follows each track's own landmarks, which differ by the tracking noise)
+    # (the face windows follow each track's own landmarks, which differ by the tracking noise)
     assert ((parallel.visibility < 1).any(axis=1) != (sequential.visibility < 1).any(axis=1)).mean() < 0.02
     for part in ("lips", "right_eye", "left_eye"):
         region = np.array(mediapipe_scheme()["contours"][part])

@@ -1,7 +1,9 @@
-"""MediaPipe FaceLandmarker: the only module that imports ``mediapipe``.
+"""MediaPipe FaceLandmarker and HandLandmarker: the only module that imports ``mediapipe``.
 
 Uses the official ``face_landmarker.task`` model vendored in ``keyshape/data`` (Apache-2.0,
-see ``data/NOTICE``), in VIDEO running mode, and converts results to arrays at once.
+see ``data/NOTICE``), in VIDEO running mode, and converts results to arrays at once. The hands
+(:class:`HandTracker`) come from the vendored ``hand_landmarker.task``: its landmarker on the whole
+picture, and its hand landmark model alone, read by OpenCV, on windows over the face.
 """
 
 from __future__ import annotations
