@@ -17,14 +17,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 
 def keyshape(*argv, cwd=None, timeout=600) -> subprocess.CompletedProcess:
     """``keyshape argv`` in a child process (the child inherits PYTHONPATH)."""
-    return subprocess.run([sys.executable, "-m", "keyshape", *map(str, argv)], capture_output=True, text=True,
-                          cwd=cwd, timeout=timeout)
+    return subprocess.run([sys.executable, "-m", "keyshape", *map(str, argv)], check=False,
+                          capture_output=True, text=True, cwd=cwd, timeout=timeout)
 
 
 def one_line_error(done: subprocess.CompletedProcess, code: int = 1, says: str = "") -> str:
@@ -110,11 +109,12 @@ import os, signal, sys
 from pathlib import Path
 out = Path(sys.argv[1]).resolve()
 replace, moves = os.replace, []
-def moving(src, dst, **kw):  # a real SIGTERM, sent at the second file moved into OUTDIR
+kind = getattr(signal, os.environ.get("KEYSHAPE_TEST_SIGNAL", "SIGTERM"))
+def moving(src, dst, **kw):  # a real signal (SIGTERM), sent at the second file moved into OUTDIR
     if Path(dst).resolve().parent == out and Path(src).parent.name.startswith("." + out.name + "."):
         moves.append(dst)
         if len(moves) == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), kind)
     return replace(src, dst, **kw)
 os.replace = moving
 from keyshape.cli import main
@@ -127,7 +127,7 @@ def test_item04_a_signal_during_the_final_move_leaves_the_old_take_or_the_new_on
 
     folder = shutil.copytree(made["run"], tmp_path / "take")
     argv = [folder, "run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q"]
-    done = subprocess.run([sys.executable, "-c", SIGNAL_AT_MOVE, *map(str, argv)], capture_output=True,
+    done = subprocess.run([sys.executable, "-c", SIGNAL_AT_MOVE, *map(str, argv)], check=False, capture_output=True,
                           text=True, timeout=600)
     assert done.returncode == 143 and done.stderr.strip().endswith("keyshape: terminated"), done.stderr
     info = json.loads((folder / "take.json").read_text())  # the switch was not cut: the new take, whole
@@ -135,6 +135,31 @@ def test_item04_a_signal_during_the_final_move_leaves_the_old_take_or_the_new_on
     assert load_track(folder / "track.npz").n_frames == 12 and load_weights_csv(folder / "weights.csv").n_frames == 12
     assert set(info["written"]) == {p.name for p in folder.iterdir()}
     assert [p.name for p in tmp_path.iterdir()] == ["take"]  # no stage left beside it
+    assert keyshape("report", folder, "--no-preview", "-q").returncode == 0
+
+
+
+def test_item04_a_switch_cut_short_by_sigkill_is_refused_by_report_and_mended_by_the_next_run(made, tmp_path):
+    """SIGKILL cannot be held: the folder is then a mix, which the readers name and the next run mends."""
+    folder = shutil.copytree(made["run"], tmp_path / "take")
+    info = json.loads((folder / "take.json").read_text())
+    (folder / "preview.mp4").write_bytes(b"an earlier run's preview")  # the old take's, stale for the new one
+    (folder / "take.json").write_text(json.dumps({**info, "written": [*info["written"], "preview.mp4"]}))
+    (folder / "notes.txt").write_text("the user's own")
+    argv = [folder, "run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q"]
+    done = subprocess.run([sys.executable, "-c", SIGNAL_AT_MOVE, *map(str, argv)], check=False, capture_output=True,
+                          text=True, timeout=600, env={**os.environ, "KEYSHAPE_TEST_SIGNAL": "SIGKILL"})
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    assert not (folder / "take.json").exists()  # cut: two files of the new take in, the rest old
+    line = one_line_error(keyshape("report", folder, "--no-preview", "-q"), 1, f"{folder}: the last output")
+    assert "cut short" in line and ".keyshape-switch" in line
+    assert len(list(tmp_path.glob(".take.*"))) == 1  # the killed run's stage
+    done = keyshape("run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q")
+    assert done.returncode == 0, done.stderr
+    info = json.loads((folder / "take.json").read_text())
+    assert info["n_frames"] == 12 and set(info["written"]) | {"notes.txt"} == {p.name for p in folder.iterdir()}
+    assert (folder / "notes.txt").read_text() == "the user's own"
+    assert [p.name for p in tmp_path.iterdir()] == ["take"]  # the dead stage went too
     assert keyshape("report", folder, "--no-preview", "-q").returncode == 0
 
 

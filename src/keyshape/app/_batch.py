@@ -125,8 +125,13 @@ def _check_stems(takes: list[Path]) -> list[Path]:
 
 
 def is_complete(folder: str | Path) -> bool:
-    """Whether ``folder`` holds a finished take: ``take.json`` and every file it lists."""
+    """Whether ``folder`` holds a finished take: ``take.json`` and every file it lists, and no
+    trace of a switch cut short (:data:`keyshape.io.atomic.SWITCH`)."""
+    from ..io.atomic import SWITCH
+
     folder = Path(folder)
+    if (folder / SWITCH).exists():
+        return False
     try:
         info = json.loads((folder / "take.json").read_text())
     except (OSError, ValueError):
