@@ -14,10 +14,13 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import pytest
+
+from conftest import read_frames, write_video
 
 
 def keyshape(*argv, cwd=None, timeout=600) -> subprocess.CompletedProcess:
@@ -189,3 +192,60 @@ def test_item03_a_second_signal_while_the_recording_is_written_loses_nothing(mad
     assert info["n_frames"] > 5 and load_track(record / "track.npz").n_frames == info["n_frames"]
     assert proc.returncode in (128 + kind, -kind), err  # a signal once it is done ends it at once: -kind
     assert "Traceback" not in err and "keyshape: closing the outputs" in err and "solved and sent" in out
+
+
+# -- Medium 5: a stopped Ray batch ends as every command does, and leaves nothing behind ---------------
+
+
+@pytest.fixture(scope="module")
+def two_takes(tmp_path_factory, demo_clip) -> Path:
+    """A folder of two short real takes (48 frames each) of the demo clip."""
+    folder = tmp_path_factory.mktemp("takes")
+    frames = read_frames(demo_clip, 200)
+    for name, start in (("a", 0), ("b", 100)):
+        write_video(folder / f"{name}.mp4", frames[start:start + 48], fps=24)
+    return folder
+
+
+def _stopped_at_the_first_stage(argv, outdir: Path, kind: int, env: dict) -> subprocess.CompletedProcess:
+    """``keyshape argv``, sent the real signal ``kind`` once a take's stage folder appears in ``outdir``."""
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", *map(str, argv)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None and not list(outdir.glob(".*")):
+        time.sleep(0.1)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(kind)
+    out, err = proc.communicate(timeout=120)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+@pytest.mark.filterwarnings("ignore::ResourceWarning")
+def test_item05_a_ray_batch_stopped_mid_take_exits_143_and_leaves_no_stage_nor_ray_session(two_takes, tmp_path):
+    pytest.importorskip("ray")  # the optional extra; without it batch runs sequentially (the next test)
+    temp, out = Path(tempfile.mkdtemp(prefix="ks-", dir="/tmp")), tmp_path / "out"  # short: Ray's socket paths
+    env = {**os.environ, "TMPDIR": str(temp)}
+    env.pop("RAY_TMPDIR", None)
+    try:
+        done = _stopped_at_the_first_stage(["batch", two_takes, "-o", out, "--workers", 2, "--no-preview"], out,
+                                           signal.SIGTERM, env)
+        left = list(temp.iterdir())
+    finally:
+        shutil.rmtree(temp, ignore_errors=True)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr.strip() == "keyshape: terminated"  # not Ray's 'SIGTERM received' dump
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no take's stage left
+    assert not left  # nor Ray's session_* folder
+
+
+def test_item05_a_rerun_removes_the_stage_of_a_killed_batch(two_takes, tmp_path):
+    out = tmp_path / "out"
+    done = _stopped_at_the_first_stage(["batch", two_takes, "-o", out, "--sequential", "--no-preview", "-q"], out,
+                                       signal.SIGKILL, dict(os.environ))
+    assert done.returncode == -signal.SIGKILL
+    left = [p.name for p in out.iterdir() if p.name.startswith(".")]
+    assert len(left) == 1 and left[0].startswith(".a."), left  # killed mid-take: its stage stays
+    (out / ".a.config").mkdir()  # a user's own hidden folder of the same look stays
+    done = keyshape("batch", two_takes, "-o", out, "--sequential", "--no-preview", "-q")
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in out.iterdir()) == [".a.config", "a", "b", "summary.csv"]

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Self
 
 from ..exceptions import InputError, KeyshapeError
+from ..io.atomic import remove_dead_stages
 from ._run import RunOptions
 
 __all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", "is_complete", "take_folder"]
@@ -312,6 +313,7 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions |
     if shared_keys and options.keys is not None:
         raise InputError("--keys and --shared-keys exclude each other: give one key set or discover one")
     outdir.mkdir(parents=True, exist_ok=True)
+    remove_dead_stages(outdir)  # the stages of takes an earlier batch was stopped in (killed workers)
     if force and shared_keys:
         _forget_shared(outdir)
     made_with = replace(options, keys=outdir / "keys.json") if shared_keys else options
@@ -322,8 +324,11 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions |
     for row in rows.values():
         report(row)
     if pending:  # a finished batch does not start Ray
-        with runner if runner is not None else make_runner() as active:
-            rows.update(_process(pending, outdir, options, shared_keys, active, report))
+        try:
+            with runner if runner is not None else make_runner() as active:
+                rows.update(_process(pending, outdir, options, shared_keys, active, report))
+        finally:  # stopped: what its killed workers staged goes now (or on the next batch)
+            remove_dead_stages(outdir)
     ordered = [rows[v] for v in videos]
     write_summary(ordered, outdir / "summary.csv")
     return ordered
