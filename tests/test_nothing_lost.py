@@ -249,3 +249,30 @@ def test_item05_a_rerun_removes_the_stage_of_a_killed_batch(two_takes, tmp_path)
     done = keyshape("batch", two_takes, "-o", out, "--sequential", "--no-preview", "-q")
     assert done.returncode == 0, done.stderr
     assert sorted(p.name for p in out.iterdir()) == [".a.config", "a", "b", "summary.csv"]
+
+
+# -- Medium 9: a folder output is never an input folder ------------------------------------------------
+
+
+@pytest.mark.parametrize("spelled", ["same", "dot", "link"])
+def test_item09_run_refuses_an_output_folder_that_is_its_image_sequence(demo_clip, tmp_path, spelled):
+    from PIL import Image
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for i, frame in enumerate(read_frames(demo_clip, 12)):
+        Image.fromarray(frame).save(images / f"frame_{i:03d}.png")
+    (tmp_path / "link").symlink_to(images, target_is_directory=True)
+    out = {"same": images, "dot": images / ".", "link": tmp_path / "link"}[spelled]
+    before = digests(images)
+    done = keyshape("run", images, "--count", 2, "--no-preview", "-o", out, "-q")
+    one_line_error(done, 2, f"-o {out}: is the input folder VIDEO {images}")
+    assert digests(images) == before and sorted(p.name for p in tmp_path.iterdir()) == ["images", "link"]
+
+
+def test_item09_batch_refuses_its_folder_of_takes_as_outdir(two_takes, tmp_path):
+    takes = shutil.copytree(two_takes, tmp_path / "takes")
+    before = digests(takes)
+    one_line_error(keyshape("batch", takes, "-o", takes, "--sequential", "-q"), 2,
+                   f"-o {takes}: is the input folder TAKES {takes}")
+    assert digests(takes) == before and sorted(p.name for p in takes.iterdir()) == ["a.mp4", "b.mp4"]

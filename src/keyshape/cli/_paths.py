@@ -7,6 +7,8 @@ runs, :func:`check_outputs` refuses
 * an output that is one of the inputs, or a file a folder output would write over an input
   (``track a.mp4 -o a.mp4``, ``retarget w.csv --rig rig.glb -o rig.glb``): a usage error;
 * a file output that names an existing folder (``-o out/`` for a .npz): a usage error;
+* a folder output that is an input folder (``run IMAGES/ -o IMAGES/``, also through a link or
+  ``IMAGES/.``): a usage error, else its files join the input's;
 * an output whose folder cannot be written (read-only, or a file where a folder should be): a
   data error, found now rather than after minutes of tracking.
 
@@ -50,6 +52,11 @@ def check_outputs(verb: str, args) -> None:
         folder_output = verb in FOLDER_OUTPUTS or (verb in _EITHER and (out.is_dir() or not out.suffix))
         if not folder_output and out.is_dir():
             raise UsageError(f"{flag} {out}: is an existing folder; give a file name")
+        if folder_output:
+            for name, source in _input_folders(verb, args):
+                if _same(out, source):
+                    raise UsageError(f"{flag} {out}: is the input folder {name} {source}; its files would be "
+                                     "written among the input's; choose another output")
         written = [out / name for name in FOLDER_OUTPUTS.get(verb, ())] if folder_output else [out]
         for target in written:
             for name, source in inputs:
@@ -76,12 +83,28 @@ def _inputs(verb: str, args) -> Iterator[tuple[str, Path]]:
         for path in value if isinstance(value, list) else [value]:
             if not isinstance(path, Path):
                 continue
-            name = dest.upper() if dest in ("video", "track", "keys", "weights", "tracks", "takes") \
-                else "--" + dest.replace("_", "-")
+            name = _argument_name(dest)
             if path.is_dir() and verb in _TAKE_FOLDER_VERBS:
                 yield from ((name, p) for p in _take_files(path))
             elif path.is_file():
                 yield name, path
+
+
+def _input_folders(verb: str, args) -> Iterator[tuple[str, Path]]:
+    """(argument name, path) of every input that is a folder (an image sequence, a folder of takes, an
+    OBJ rig): a folder output must not be one of them, or its files join the input's (a run's
+    pictures among the frames of the next run's image sequence)."""
+    for dest, value in vars(args).items():
+        if dest in _OUTPUT_DESTS:
+            continue
+        for path in value if isinstance(value, list) else [value]:
+            if isinstance(path, Path) and path.is_dir():
+                yield _argument_name(dest), path
+
+
+def _argument_name(dest: str) -> str:
+    return dest.upper() if dest in ("video", "track", "keys", "weights", "tracks", "takes") \
+        else "--" + dest.replace("_", "-")
 
 
 def _take_files(folder: Path) -> list[Path]:
