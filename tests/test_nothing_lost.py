@@ -276,3 +276,25 @@ def test_item09_batch_refuses_its_folder_of_takes_as_outdir(two_takes, tmp_path)
     one_line_error(keyshape("batch", takes, "-o", takes, "--sequential", "-q"), 2,
                    f"-o {takes}: is the input folder TAKES {takes}")
     assert digests(takes) == before and sorted(p.name for p in takes.iterdir()) == ["a.mp4", "b.mp4"]
+
+
+# -- Medium 10: a write that fails for want of room says where, in one line ------------------------------
+
+
+def _small_files() -> None:
+    """In the child: files stop growing at 300 kB (a write beyond fails, EFBIG), for it and its workers."""
+    import resource
+
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))
+
+
+def test_item10_parallel_track_out_of_room_prints_one_line_naming_where(demo_clip, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    done = subprocess.run([sys.executable, "-m", "keyshape", "track", str(demo_clip), "-o", str(out / "t.npz"),
+                           "--workers", "2"], check=False, capture_output=True, text=True, timeout=600,
+                          preexec_fn=_small_files)
+    line = one_line_error(done, 1, f"{out}{os.sep}keyshape-track-")  # the spool beside the output
+    assert line.endswith(": cannot write (File too large)"), line
+    assert not list(out.iterdir())  # neither the spool nor a part of the track is left

@@ -1,8 +1,10 @@
-"""Atomic file writes (a failed write leaves no half-written file behind), and the check every reader makes."""
+"""Atomic file writes (a failed write leaves no half-written file behind, and names its file), staged folders,
+and the check every reader makes."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import json
 import os
@@ -14,10 +16,10 @@ import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from ..exceptions import InputError
+from ..exceptions import InputError, WriteError
 
-__all__ = ["atomic_path", "staged_folder", "check_switched", "remove_dead_stages", "existing_file", "held_signals",
-           "SWITCH"]
+__all__ = ["atomic_path", "named_write_errors", "staged_folder", "check_switched", "remove_dead_stages",
+           "existing_file", "held_signals", "SWITCH"]
 
 
 def _umask() -> int:
@@ -39,11 +41,32 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.close(fd)
     tmp = Path(tmp)
     try:
-        yield tmp
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, path)
+        with named_write_errors(path):
+            yield tmp
+            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+            os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+_NO_ROOM = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS})
+
+
+@contextlib.contextmanager
+def named_write_errors(path: str | Path) -> Iterator[None]:
+    """Turn a failed write inside the block that names no file (a full disk: ``[Errno 28] No space
+    left on device``, a quota, a read-only or failing disk) into a
+    :class:`~keyshape.exceptions.WriteError` naming ``path``, the file (or folder) being written."""
+    try:
+        yield
+    except WriteError:
+        raise
+    except OSError as exc:
+        if exc.errno not in _NO_ROOM:
+            raise
+        error = WriteError(f"{path}: cannot write ({exc.strerror or exc})")
+        error.errno = exc.errno
+        raise error from exc
 
 
 SWITCH = ".keyshape-switch"  # in a folder while a stage's files move in: its presence says "incomplete"
