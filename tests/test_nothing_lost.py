@@ -298,3 +298,69 @@ def test_item10_parallel_track_out_of_room_prints_one_line_naming_where(demo_cli
     line = one_line_error(done, 1, f"{out}{os.sep}keyshape-track-")  # the spool beside the output
     assert line.endswith(": cannot write (File too large)"), line
     assert not list(out.iterdir())  # neither the spool nor a part of the track is left
+
+
+# -- Medium 11: a glTF file whose indices or byte ranges point nowhere is one line naming it ---------------
+
+
+def _rewritten_glb(source: Path, target: Path, change) -> Path:
+    """``source`` (.glb) with its JSON chunk changed by ``change(document)``, the binary chunk kept,
+    every length in the header right (so only the broken reference is wrong)."""
+    import struct
+
+    data = source.read_bytes()
+    n = struct.unpack_from("<I", data, 12)[0]
+    document = json.loads(data[20:20 + n])
+    change(document)
+    text = json.dumps(document).encode()
+    text += b" " * (-len(text) % 4)
+    rest = data[20 + n:]
+    target.write_bytes(struct.pack("<4sII", b"glTF", 2, 20 + len(text) + len(rest))
+                       + struct.pack("<I4s", len(text), b"JSON") + text + rest)
+    return target
+
+
+def _set(*where, value):
+    """``change`` setting ``document[where[0]][where[1]]...`` to ``value``."""
+    def change(document):
+        node = document
+        for key in where[:-1]:
+            node = node[key]
+        node[where[-1]] = value
+    return change
+
+
+CORRUPT = {
+    "meshes[0].primitives[0].attributes.POSITION is 999": _set("meshes", 0, "primitives", 0, "attributes",
+                                                              "POSITION", value=999),
+    "meshes[0].primitives[0].targets[0].POSITION is -1": _set("meshes", 0, "primitives", 0, "targets", 0,
+                                                             "POSITION", value=-1),
+    "accessors[0].bufferView is 77": _set("accessors", 0, "bufferView", value=77),
+    "bufferViews[0] ends at byte": _set("bufferViews", 0, "byteLength", value=1 << 40),
+    "accessors[0] needs": _set("accessors", 0, "count", value=10 ** 7),
+    "animations[0].samplers[0].output is 4000": _set("animations", 0, "samplers", 0, "output", value=4000),
+    "animations[0].channels[0].sampler is 9": _set("animations", 0, "channels", 0, "sampler", value=9),
+    "nodes[0].mesh is 5": _set("nodes", 0, "mesh", value=5),
+}
+
+
+@pytest.mark.parametrize("says", list(CORRUPT))
+def test_item11_retarget_on_a_glb_with_a_broken_reference_says_which_in_one_line(made, tmp_path, says):
+    rig = _rewritten_glb(made["run"] / "animation.glb", tmp_path / "rig.glb", CORRUPT[says])
+    weights = tmp_path / "w.csv"
+    done = keyshape("solve", made["track"], made["run"] / "keys.json", "-o", weights, "-q")
+    assert done.returncode == 0, done.stderr
+    one_line_error(keyshape("retarget", weights, "--rig", rig, "-o", tmp_path / "out.glb", "-q"), 1,
+                   f"{rig}: a damaged glTF: {says}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.glb", "w.csv"]
+
+
+def test_item11_report_on_a_take_whose_animation_is_damaged_names_it(made, tmp_path):
+    folder = shutil.copytree(made["run"], tmp_path / "take")
+    _rewritten_glb(made["run"] / "animation.glb", folder / "animation.glb",
+                   _set("accessors", 3, "bufferView", value=1000))
+    before = digests(folder)
+    one_line_error(keyshape("report", folder, "--no-preview", "-q"), 1,
+                   f"{folder / 'animation.glb'}: a damaged glTF: accessors[3].bufferView is 1000")
+    assert digests(folder) == before
+
