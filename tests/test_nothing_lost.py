@@ -364,3 +364,15 @@ def test_item11_report_on_a_take_whose_animation_is_damaged_names_it(made, tmp_p
                    f"{folder / 'animation.glb'}: a damaged glTF: accessors[3].bufferView is 1000")
     assert digests(folder) == before
 
+
+# -- Low ----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv, says", [(["--vmc", "127.0.0.1:99999"], "argument --vmc: must be HOST:PORT"),
+                                        (["--livelink", "studio-pc"], "argument --livelink: must be HOST:PORT"),
+                                        (["--view", "--no-browser", "--port", "70000"],
+                                         "argument --port: must be between 0 and 65535")])
+def test_low_bad_addresses_and_ports_are_usage_errors_before_the_source_is_opened(made, argv, says):
+    started = time.monotonic()
+    one_line_error(keyshape("live", made["video"], "--keys", made["keys"], *argv), 2, says)
+    assert time.monotonic() - started < 30  # refused, not after a session
