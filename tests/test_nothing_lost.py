@@ -376,3 +376,15 @@ def test_low_bad_addresses_and_ports_are_usage_errors_before_the_source_is_opene
     started = time.monotonic()
     one_line_error(keyshape("live", made["video"], "--keys", made["keys"], *argv), 2, says)
     assert time.monotonic() - started < 30  # refused, not after a session
+
+
+@pytest.mark.parametrize("verb", ["run", "report-k", "live"])
+def test_low_a_folder_output_that_is_an_existing_file_is_refused_before_the_work(made, tmp_path, verb):
+    mine = tmp_path / "notes.txt"
+    mine.write_text("the user's own")
+    argv = {"run": ["run", made["video"], "--end", 12, "--count", 2, "-o", mine],
+            "report-k": ["report-k", made["track"], "-o", mine],
+            "live": ["live", made["video"], "--keys", made["keys"], "--record", mine]}[verb]
+    flag = "--record" if verb == "live" else "-o"
+    one_line_error(keyshape(*argv), 2, f"{flag} {mine}: is an existing file; give a folder")
+    assert mine.read_text() == "the user's own" and [p.name for p in tmp_path.iterdir()] == ["notes.txt"]

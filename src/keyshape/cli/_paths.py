@@ -1,12 +1,13 @@
 """The one check of a verb's output paths, made before any work starts.
 
 Every verb's arguments are read the same way: the ``-o``/``--output`` values (and
-``--save-correspondence``) are outputs, every other path argument is an input. Before the verb
-runs, :func:`check_outputs` refuses
+``--save-correspondence``, ``live --record``) are outputs, every other path argument is an input.
+Before the verb runs, :func:`check_outputs` refuses
 
 * an output that is one of the inputs, or a file a folder output would write over an input
   (``track a.mp4 -o a.mp4``, ``retarget w.csv --rig rig.glb -o rig.glb``): a usage error;
-* a file output that names an existing folder (``-o out/`` for a .npz): a usage error;
+* a file output that names an existing folder (``-o out/`` for a .npz), or a folder output an
+  existing file (``run -o notes.txt``, ``live --record take.mp4``): a usage error;
 * a folder output that is an input folder (``run IMAGES/ -o IMAGES/``, also through a link or
   ``IMAGES/.``): a usage error, else its files join the input's;
 * an output whose folder cannot be written (read-only, or a file where a folder should be): a
@@ -41,23 +42,28 @@ FOLDER_OUTPUTS = {
     "coverage": ("coverage.png", "coverage.json"),
 }
 _EITHER = {"propose"}  # -o is a file (.json, .glb) or a folder (an OBJ rig)
-_OUTPUT_DESTS = ("output", "save_correspondence")
+# outputs other than -o that are folders, whatever the verb: argument -> the files written in it
+_FOLDER_DESTS = {"record": ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")}
+_OUTPUT_DESTS = ("output", "save_correspondence", *_FOLDER_DESTS)
 _TAKE_FOLDER_VERBS = {"report", "preview", "view"}
 
 
 def check_outputs(verb: str, args) -> None:
     """Refuse outputs that would destroy an input or cannot be written (see the module)."""
     inputs = list(_inputs(verb, args))
-    for flag, out in _outputs(args):
-        folder_output = verb in FOLDER_OUTPUTS or (verb in _EITHER and (out.is_dir() or not out.suffix))
+    for flag, out, dest in _outputs(args):
+        names = _FOLDER_DESTS.get(dest, FOLDER_OUTPUTS.get(verb) if dest == "output" else None)
+        folder_output = names is not None or (verb in _EITHER and (out.is_dir() or not out.suffix))
         if not folder_output and out.is_dir():
             raise UsageError(f"{flag} {out}: is an existing folder; give a file name")
+        if folder_output and out.exists() and not out.is_dir():
+            raise UsageError(f"{flag} {out}: is an existing file; give a folder")
         if folder_output:
             for name, source in _input_folders(verb, args):
                 if _same(out, source):
                     raise UsageError(f"{flag} {out}: is the input folder {name} {source}; its files would be "
                                      "written among the input's; choose another output")
-        written = [out / name for name in FOLDER_OUTPUTS.get(verb, ())] if folder_output else [out]
+        written = [out / name for name in names or ()] if folder_output else [out]
         for target in written:
             for name, source in inputs:
                 if _same(target, source):
@@ -66,13 +72,14 @@ def check_outputs(verb: str, args) -> None:
         _check_writable(flag, out)
 
 
-def _outputs(args) -> Iterator[tuple[str, Path]]:
+def _outputs(args) -> Iterator[tuple[str, Path, str]]:
+    """(flag, path, argument) of every output the arguments name."""
     for dest in _OUTPUT_DESTS:
         value = getattr(args, dest, None)
         flag = "-o" if dest == "output" else "--" + dest.replace("_", "-")
         for out in value if isinstance(value, list) else [value]:
             if isinstance(out, Path):
-                yield flag, out
+                yield flag, out, dest
 
 
 def _inputs(verb: str, args) -> Iterator[tuple[str, Path]]:
