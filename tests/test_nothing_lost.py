@@ -388,3 +388,11 @@ def test_low_a_folder_output_that_is_an_existing_file_is_refused_before_the_work
     flag = "--record" if verb == "live" else "-o"
     one_line_error(keyshape(*argv), 2, f"{flag} {mine}: is an existing file; give a folder")
     assert mine.read_text() == "the user's own" and [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+
+
+def test_low_a_track_too_short_for_keys_names_its_file(made, tmp_path):
+    short = tmp_path / "short.npz"
+    assert keyshape("track", made["video"], "--end", 1, "-o", short, "-q").returncode == 0
+    one_line_error(keyshape("keys", short, "-o", tmp_path / "k.json", "-q"), 1,
+                   "short.npz: a track needs at least 2 frames with a face; this one has 1")
+    assert [p.name for p in tmp_path.iterdir()] == ["short.npz"]
