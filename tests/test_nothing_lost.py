@@ -396,3 +396,17 @@ def test_low_a_track_too_short_for_keys_names_its_file(made, tmp_path):
     one_line_error(keyshape("keys", short, "-o", tmp_path / "k.json", "-q"), 1,
                    "short.npz: a track needs at least 2 frames with a face; this one has 1")
     assert [p.name for p in tmp_path.iterdir()] == ["short.npz"]
+
+
+def test_low_batch_whose_reader_stops_reading_finishes_every_take(two_takes, tmp_path):
+    """``keyshape batch ... 2>&1 | head -1``: the pipe closes after the first line; the takes go on."""
+    from keyshape.app import is_complete
+
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", "batch", str(two_takes), "-o", str(out), "--sequential",
+                             "--no-preview"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    first = proc.stdout.readline()
+    proc.stdout.close()  # as head -1 does
+    assert proc.wait(timeout=600) == 0
+    assert first.split() == ["ok", "a.mp4"]
+    assert is_complete(out / "a") and is_complete(out / "b") and (out / "summary.csv").is_file()
