@@ -410,3 +410,20 @@ def test_low_batch_whose_reader_stops_reading_finishes_every_take(two_takes, tmp
     assert proc.wait(timeout=600) == 0
     assert first.split() == ["ok", "a.mp4"]
     assert is_complete(out / "a") and is_complete(out / "b") and (out / "summary.csv").is_file()
+
+
+@pytest.mark.parametrize("verb", ["batch", "run"])
+def test_low_an_early_sigterm_leaves_no_empty_output_folder(made, two_takes, tmp_path, verb):
+    out = tmp_path / "new" / "deep" / "out"
+    argv = {"batch": ["batch", two_takes, "-o", out, "--sequential", "--no-preview", "-q"],
+            "run": ["run", made["video"], "--end", 12, "--count", 2, "-o", out, "-q"]}[verb]
+    seen = out if verb == "batch" else out.parent  # made at batch's start; beside run's stage, at its end
+    proc = subprocess.Popen([sys.executable, "-m", "keyshape", *map(str, argv)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None and not seen.exists():
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143 and err.strip() == "keyshape: terminated", err
+    assert list(tmp_path.iterdir()) == []  # neither OUTDIR nor the folders made for it

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Self
 
 from ..exceptions import InputError, KeyshapeError
-from ..io.atomic import remove_dead_stages
+from ..io.atomic import new_folders, remove_dead_stages
 from ._run import RunOptions
 
 __all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", "is_complete", "take_folder"]
@@ -312,7 +312,12 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions |
     options = options if options is not None else RunOptions()
     if shared_keys and options.keys is not None:
         raise InputError("--keys and --shared-keys exclude each other: give one key set or discover one")
-    outdir.mkdir(parents=True, exist_ok=True)
+    with new_folders(outdir):  # stopped before any take is in: no empty OUTDIR is left
+        return _batch(videos, outdir, options, shared_keys, runner, on_row, force)
+
+
+def _batch(videos: list[Path], outdir: Path, options: RunOptions, shared_keys: bool, runner, on_row,
+           force: bool) -> list[BatchRow]:
     remove_dead_stages(outdir)  # the stages of takes an earlier batch was stopped in (killed workers)
     if force and shared_keys:
         _forget_shared(outdir)

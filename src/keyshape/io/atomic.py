@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ..exceptions import InputError, WriteError
 
-__all__ = ["atomic_path", "named_write_errors", "staged_folder", "check_switched", "remove_dead_stages",
+__all__ = ["atomic_path", "new_folders", "named_write_errors", "staged_folder", "check_switched", "remove_dead_stages",
            "existing_file", "held_signals", "SWITCH"]
 
 
@@ -36,17 +36,39 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     The temporary name keeps the suffix so writers that dispatch on it still work.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
+    with new_folders(path.parent):
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
+        os.close(fd)
+        tmp = Path(tmp)
+        try:
+            with named_write_errors(path):
+                yield tmp
+                os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+                os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def new_folders(folder: str | Path) -> Iterator[Path]:
+    """``folder``, made with its missing parents; when the block fails (an error, Ctrl-C, SIGTERM),
+    the folders it made that are still empty are removed again: a stopped command leaves no empty
+    output folder behind."""
+    folder = Path(folder)
+    missing, above = [], folder
+    while not above.exists() and above != above.parent:
+        missing.append(above)  # the deepest first
+        above = above.parent
+    folder.mkdir(parents=True, exist_ok=True)
     try:
-        with named_write_errors(path):
-            yield tmp
-            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
-            os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+        yield folder
+    except BaseException:
+        for made in missing:
+            try:
+                made.rmdir()
+            except OSError:  # not empty (or not ours to remove): it and those above stay
+                break
+        raise
 
 
 _NO_ROOM = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS})
@@ -95,19 +117,19 @@ def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = N
     stage beside it (:func:`remove_dead_stages`): every stage is locked by its process while it lives.
     """
     folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    remove_dead_stages(folder.parent, folder.name)
-    stage, lock = _locked_stage(folder)
-    try:
-        yield stage
-        written = sorted(p.name for p in stage.iterdir())
-        if record in written:
-            written = [name for name in written if name != record] + [record]
-        with held_signals():
-            _switch(stage, folder, written, owned, record)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        os.close(lock)
+    with new_folders(folder.parent):
+        remove_dead_stages(folder.parent, folder.name)
+        stage, lock = _locked_stage(folder)
+        try:
+            yield stage
+            written = sorted(p.name for p in stage.iterdir())
+            if record in written:
+                written = [name for name in written if name != record] + [record]
+            with held_signals():
+                _switch(stage, folder, written, owned, record)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+            os.close(lock)
 
 
 def _switch(stage: Path, folder: Path, written: list[str], owned: Callable[[str], bool] | None,
