@@ -208,16 +208,19 @@ def remove_dead_stages(parent: str | Path, name: str | None = None) -> list[Path
 
 
 def _try_lock(fd: int, *, probe: bool = False) -> bool:
-    """Take the exclusive lock of ``fd`` without waiting; whether it was free. Without ``fcntl``:
-    True for a stage's own lock, False for a probe (a stage cannot be told dead)."""
+    """Take the exclusive lock of ``fd`` without waiting; whether it was free. Where locks are not to
+    be had (no ``fcntl``: Windows; a file system without them): True for a stage's own lock, False
+    for a probe (a stage cannot be told dead there, so none is removed)."""
     try:
         import fcntl
     except ImportError:
         return not probe
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except BlockingIOError:  # held: a living process's
         return False
+    except OSError:  # ENOLCK, EINVAL...: no locks here
+        return not probe
     return True
 
 
