@@ -234,7 +234,7 @@ def test_item05_a_ray_batch_stopped_mid_take_exits_143_and_leaves_no_stage_nor_r
         shutil.rmtree(temp, ignore_errors=True)
     assert done.returncode == 143, done.stderr
     assert done.stderr.strip() == "keyshape: terminated"  # not Ray's 'SIGTERM received' dump
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no take's stage left
+    assert not out.exists() or not [p for p in out.iterdir() if p.name.startswith(".")]  # no take's stage left
     assert not left  # nor Ray's session_* folder
 
 
