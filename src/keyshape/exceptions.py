@@ -25,6 +25,10 @@ class RigError(KeyshapeError):
     """A rig that cannot drive the requested key shapes (missing targets, bad topology)."""
 
 
+class WriteError(KeyshapeError, OSError):
+    """A file could not be written (a full disk, a quota, a folder taken away); the message names it."""
+
+
 class MissingDependencyError(KeyshapeError, ImportError):
     """An optional dependency is not installed; the message says how to install it."""
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Self
 
 from ..exceptions import InputError, KeyshapeError
+from ..io.atomic import new_folders, remove_dead_stages
 from ._run import RunOptions
 
 __all__ = ["VIDEO_SUFFIXES", "BatchRow", "batch", "find_takes", "format_table", "is_complete", "take_folder"]
@@ -125,8 +126,13 @@ def _check_stems(takes: list[Path]) -> list[Path]:
 
 
 def is_complete(folder: str | Path) -> bool:
-    """Whether ``folder`` holds a finished take: ``take.json`` and every file it lists."""
+    """Whether ``folder`` holds a finished take: ``take.json`` and every file it lists, and no
+    trace of a switch cut short (:data:`keyshape.io.atomic.SWITCH`)."""
+    from ..io.atomic import SWITCH
+
     folder = Path(folder)
+    if (folder / SWITCH).exists():
+        return False
     try:
         info = json.loads((folder / "take.json").read_text())
     except (OSError, ValueError):
@@ -306,7 +312,13 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions |
     options = options if options is not None else RunOptions()
     if shared_keys and options.keys is not None:
         raise InputError("--keys and --shared-keys exclude each other: give one key set or discover one")
-    outdir.mkdir(parents=True, exist_ok=True)
+    with new_folders(outdir):  # stopped before any take is in: no empty OUTDIR is left
+        return _batch(videos, outdir, options, shared_keys, runner, on_row, force)
+
+
+def _batch(videos: list[Path], outdir: Path, options: RunOptions, shared_keys: bool, runner, on_row,
+           force: bool) -> list[BatchRow]:
+    remove_dead_stages(outdir)  # the stages of takes an earlier batch was stopped in (killed workers)
     if force and shared_keys:
         _forget_shared(outdir)
     made_with = replace(options, keys=outdir / "keys.json") if shared_keys else options
@@ -317,8 +329,11 @@ def batch(takes: Sequence[str | Path], outdir: str | Path, options: RunOptions |
     for row in rows.values():
         report(row)
     if pending:  # a finished batch does not start Ray
-        with runner if runner is not None else make_runner() as active:
-            rows.update(_process(pending, outdir, options, shared_keys, active, report))
+        try:
+            with runner if runner is not None else make_runner() as active:
+                rows.update(_process(pending, outdir, options, shared_keys, active, report))
+        finally:  # stopped: what its killed workers staged goes now (or on the next batch)
+            remove_dead_stages(outdir)
     ordered = [rows[v] for v in videos]
     write_summary(ordered, outdir / "summary.csv")
     return ordered

@@ -85,7 +85,8 @@ def discover_keys(track: Track | Sequence[Track], *, regions: str | Path | dict 
                              f"{takes[0]} has {first.n_landmarks} in {first.n_dims}D")
     valid = sum(int(t.valid.sum()) for t in tracks)
     if valid < 2:
-        raise InputError(f"a track needs at least 2 frames with a face; this one has {valid}")
+        has = "these have" if len(tracks) > 1 else "this one has"
+        raise InputError(f"{', '.join(takes)}: a track needs at least 2 frames with a face; {has} {valid}")
     region_map = regions if isinstance(regions, dict) else resolve_regions(regions, first.n_landmarks)
     stable = stable_points(first.n_landmarks) if stable is None else np.asarray(stable)
     rest = None

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..exceptions import WriteError
 from .video import VideoInfo, frame_pts
 
 __all__ = ["default_workers", "plan_segments", "spool_parallel", "start_workers", "stop_workers", "Segment"]
@@ -220,16 +221,26 @@ def _worker() -> None:
     except Exception as exc:  # noqa: BLE001 - handed to the parent, which re-raises it
         outcome = ("error", exc)
     partial = result.with_suffix(".partial")
-    partial.write_bytes(pickle.dumps(outcome))
-    partial.replace(result)
+    try:
+        partial.write_bytes(pickle.dumps(outcome))
+        partial.replace(result)
+    except OSError as exc:  # no room even for the result: the parent says so, naming the folder
+        partial.unlink(missing_ok=True)
+        os._exit(_UNWRITTEN + exc.errno if exc.errno and exc.errno < 256 - _UNWRITTEN else _UNWRITTEN)
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)  # the files are written and closed; the interpreter's teardown (0.1-0.2 s) would delay the parent
 
 
+_UNWRITTEN = 100  # a worker's exit code when it could not write its result: 100 + the write's errno
+
+
 def _collect(process: subprocess.Popen, folder: Path, segment: Segment) -> dict:
     code = process.wait()
     result = folder / "result.pickle"
+    if not result.exists() and _UNWRITTEN <= code < 256:
+        why = os.strerror(code - _UNWRITTEN) if code > _UNWRITTEN else "an error"
+        raise WriteError(f"{folder}: cannot write the tracking of frames {segment.first}..{segment.end - 1} ({why})")
     if not result.exists():
         raise RuntimeError(f"the worker tracking frames {segment.first}..{segment.end - 1} exited with code {code}")
     kind, value = pickle.loads(result.read_bytes())

@@ -17,6 +17,8 @@ from typing import Self
 
 import numpy as np
 
+from ..io.atomic import named_write_errors
+
 __all__ = ["N_LANDMARKS", "N_SCORES", "HANDS_SHAPE", "Spool", "spool_folder"]
 
 N_LANDMARKS = 478
@@ -66,9 +68,10 @@ class Spool:
         """Write one frame: ``points``, ``scores``, ``matrix`` and ``hands`` (None: none looked
         for) arrays, its source frame ``index``, time ``ms`` and ``n_seen`` faces."""
         hands = _NO_HANDS if frame.hands is None else frame.hands
-        for name, fh in self.files.items():
-            value = hands if name == "hands" else getattr(frame, name)
-            fh.write(np.ascontiguousarray(value, dtype=np.float32).tobytes())
+        with named_write_errors(self.folder):  # a full disk says where
+            for name, fh in self.files.items():
+                value = hands if name == "hands" else getattr(frame, name)
+                fh.write(np.ascontiguousarray(value, dtype=np.float32).tobytes())
         self.n_frames += 1
         self.n_faces += bool(np.isfinite(frame.points[0, 0]))
         self.n_hands += bool(np.isfinite(hands[:, 0, 0]).any())
@@ -88,7 +91,8 @@ class Spool:
         return self
 
     def __exit__(self, *exc) -> None:
-        self._open.close()
+        with named_write_errors(self.folder):  # the last buffered bytes
+            self._open.close()
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Memory maps of what was written (call after the ``with`` block)."""

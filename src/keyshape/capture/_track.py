@@ -20,6 +20,7 @@ import numpy as np
 
 from ..containers import Track
 from ..exceptions import InputError, InputWarning, NoFaceError
+from ..io.atomic import named_write_errors
 from ._spool import N_LANDMARKS, N_SCORES, Spool, spool_folder
 from .mediapipe import Detection, HandTracker, MediaPipeTracker, TrackerOptions, default_model_path
 from .video import VideoInfo, iter_frames, prefetch, probe
@@ -156,8 +157,9 @@ def _spool(path, *, options, start, end, fps, face, progress, folder: Path,
         settings = {"options": options, "fps": fps, "face": face, "one_euro": one_euro,
                     "hands": visibility == "auto"}
         if processes:  # None: too short to split
-            spool = spool_parallel(path, info, _track_segment, Spool, start=start, end=end, progress=progress,
-                                   folder=folder, processes=processes, **settings)
+            with named_write_errors(folder):  # the segments' joins: a full disk says where
+                spool = spool_parallel(path, info, _track_segment, Spool, start=start, end=end,
+                                       progress=progress, folder=folder, processes=processes, **settings)
     finally:
         if processes:
             stop_workers(processes)

@@ -6,7 +6,8 @@ import argparse
 import math
 from pathlib import Path
 
-__all__ = ["bound", "weight_bound", "non_negative", "positive", "frame_rate", "whole", "regions"]
+__all__ = ["bound", "weight_bound", "non_negative", "positive", "frame_rate", "whole", "regions", "tcp_port",
+           "address"]
 
 
 def _number(text: str) -> float:
@@ -103,3 +104,37 @@ def regions(text: str) -> str | Path:
         return Path(text)
     raise argparse.ArgumentTypeError(f"{text!r} is neither a scheme ({', '.join(REGION_SCHEMES)}) nor an "
                                      "existing REGIONS.json file")
+
+
+def tcp_port(text: str) -> int:
+    """A TCP or UDP port, 0 (any free one) to 65535.
+
+    Examples
+    --------
+    >>> tcp_port("8000")
+    8000
+    """
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 65535; got {value}")
+    return value
+
+
+def address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` as ``(host, port)``, the port in 1..65535 (checked before any source is opened).
+
+    Examples
+    --------
+    >>> address("127.0.0.1:39539")
+    ('127.0.0.1', 39539)
+    """
+    from ..exceptions import InputError
+    from ..live import parse_address
+
+    try:
+        return parse_address(text, option="it")
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("it ")) from None

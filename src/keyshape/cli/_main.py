@@ -15,6 +15,7 @@ temporary file on the way out). Warnings meant for the user
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from importlib import import_module
 
@@ -106,7 +107,6 @@ def _blas_threads():
     """One BLAS thread unless the user chose: keyshape's linear algebra is many small K x K
     products, which threads slow down (measured 1.5-3x on 2 cores); set OPENBLAS_NUM_THREADS
     or OMP_NUM_THREADS to override."""
-    import contextlib
     import os
 
     if any(v in os.environ for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")):
@@ -124,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     interpreter's collections at exit walk them several times over, 0.3 s once numba and scipy are
     loaded, only to free memory the system takes back anyway.
     """
-    code = _run(sys.argv[1:] if argv is None else list(argv))
+    with _unbroken_output():
+        code = _run(sys.argv[1:] if argv is None else list(argv))
     if argv is None:
         import gc
 
@@ -174,11 +175,65 @@ def _run(argv: list[str]) -> int:
     return 0
 
 
+class _Unbroken:
+    """``stream`` (stdout or stderr) that outlives its reader: once a write finds the pipe closed
+    (``keyshape batch ... | head -1``), its descriptor is pointed at the null device and the rest of
+    the text is dropped, so the work goes on to its end instead of dying of BrokenPipeError."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _closed_pipe(self) -> None:
+        import os
+
+        with contextlib.suppress(OSError, ValueError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())  # the buffered text, and child processes, go there too
+            os.close(devnull)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._closed_pipe()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._closed_pipe()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _unbroken_output():
+    """stdout and stderr as :class:`_Unbroken` for the block (streams without a descriptor as they are)."""
+    previous = sys.stdout, sys.stderr
+    wrap = [stream if _descriptor(stream) is None else _Unbroken(stream) for stream in previous]
+    sys.stdout, sys.stderr = wrap
+    try:
+        yield
+    finally:
+        for stream in wrap:
+            with contextlib.suppress(OSError, ValueError):
+                stream.flush()
+        sys.stdout, sys.stderr = previous
+
+
+def _descriptor(stream) -> int | None:
+    try:
+        return stream.fileno()
+    except (AttributeError, OSError, ValueError):  # pytest's capture, StringIO
+        return None
+
+
 def _terminate_as_interrupt():
     """SIGTERM raises :class:`Terminated` in the main thread, as Ctrl-C raises KeyboardInterrupt,
     so ``finally`` blocks and context managers remove temporaries (``timeout``, ``kill``, a
     scheduler stopping a job). The previous handler is restored afterwards."""
-    import contextlib
     import signal
     import threading
 
@@ -201,7 +256,6 @@ def _terminate_as_interrupt():
 
 def _one_line_warnings():
     """Print :class:`InputWarning` as ``keyshape: warning: ...``, once per message."""
-    import contextlib
     import warnings
 
     @contextlib.contextmanager

@@ -1,12 +1,15 @@
 """The one check of a verb's output paths, made before any work starts.
 
 Every verb's arguments are read the same way: the ``-o``/``--output`` values (and
-``--save-correspondence``) are outputs, every other path argument is an input. Before the verb
-runs, :func:`check_outputs` refuses
+``--save-correspondence``, ``live --record``) are outputs, every other path argument is an input.
+Before the verb runs, :func:`check_outputs` refuses
 
 * an output that is one of the inputs, or a file a folder output would write over an input
   (``track a.mp4 -o a.mp4``, ``retarget w.csv --rig rig.glb -o rig.glb``): a usage error;
-* a file output that names an existing folder (``-o out/`` for a .npz): a usage error;
+* a file output that names an existing folder (``-o out/`` for a .npz), or a folder output an
+  existing file (``run -o notes.txt``, ``live --record take.mp4``): a usage error;
+* a folder output that is an input folder (``run IMAGES/ -o IMAGES/``, also through a link or
+  ``IMAGES/.``): a usage error, else its files join the input's;
 * an output whose folder cannot be written (read-only, or a file where a folder should be): a
   data error, found now rather than after minutes of tracking.
 
@@ -39,18 +42,28 @@ FOLDER_OUTPUTS = {
     "coverage": ("coverage.png", "coverage.json"),
 }
 _EITHER = {"propose"}  # -o is a file (.json, .glb) or a folder (an OBJ rig)
-_OUTPUT_DESTS = ("output", "save_correspondence")
+# outputs other than -o that are folders, whatever the verb: argument -> the files written in it
+_FOLDER_DESTS = {"record": ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json")}
+_OUTPUT_DESTS = ("output", "save_correspondence", *_FOLDER_DESTS)
 _TAKE_FOLDER_VERBS = {"report", "preview", "view"}
 
 
 def check_outputs(verb: str, args) -> None:
     """Refuse outputs that would destroy an input or cannot be written (see the module)."""
     inputs = list(_inputs(verb, args))
-    for flag, out in _outputs(args):
-        folder_output = verb in FOLDER_OUTPUTS or (verb in _EITHER and (out.is_dir() or not out.suffix))
+    for flag, out, dest in _outputs(args):
+        names = _FOLDER_DESTS.get(dest, FOLDER_OUTPUTS.get(verb) if dest == "output" else None)
+        folder_output = names is not None or (verb in _EITHER and (out.is_dir() or not out.suffix))
         if not folder_output and out.is_dir():
             raise UsageError(f"{flag} {out}: is an existing folder; give a file name")
-        written = [out / name for name in FOLDER_OUTPUTS.get(verb, ())] if folder_output else [out]
+        if folder_output and out.exists() and not out.is_dir():
+            raise UsageError(f"{flag} {out}: is an existing file; give a folder")
+        if folder_output:
+            for name, source in _input_folders(verb, args):
+                if _same(out, source):
+                    raise UsageError(f"{flag} {out}: is the input folder {name} {source}; its files would be "
+                                     "written among the input's; choose another output")
+        written = [out / name for name in names or ()] if folder_output else [out]
         for target in written:
             for name, source in inputs:
                 if _same(target, source):
@@ -59,13 +72,14 @@ def check_outputs(verb: str, args) -> None:
         _check_writable(flag, out)
 
 
-def _outputs(args) -> Iterator[tuple[str, Path]]:
+def _outputs(args) -> Iterator[tuple[str, Path, str]]:
+    """(flag, path, argument) of every output the arguments name."""
     for dest in _OUTPUT_DESTS:
         value = getattr(args, dest, None)
         flag = "-o" if dest == "output" else "--" + dest.replace("_", "-")
         for out in value if isinstance(value, list) else [value]:
             if isinstance(out, Path):
-                yield flag, out
+                yield flag, out, dest
 
 
 def _inputs(verb: str, args) -> Iterator[tuple[str, Path]]:
@@ -76,12 +90,28 @@ def _inputs(verb: str, args) -> Iterator[tuple[str, Path]]:
         for path in value if isinstance(value, list) else [value]:
             if not isinstance(path, Path):
                 continue
-            name = dest.upper() if dest in ("video", "track", "keys", "weights", "tracks", "takes") \
-                else "--" + dest.replace("_", "-")
+            name = _argument_name(dest)
             if path.is_dir() and verb in _TAKE_FOLDER_VERBS:
                 yield from ((name, p) for p in _take_files(path))
             elif path.is_file():
                 yield name, path
+
+
+def _input_folders(verb: str, args) -> Iterator[tuple[str, Path]]:
+    """(argument name, path) of every input that is a folder (an image sequence, a folder of takes, an
+    OBJ rig): a folder output must not be one of them, or its files join the input's (a run's
+    pictures among the frames of the next run's image sequence)."""
+    for dest, value in vars(args).items():
+        if dest in _OUTPUT_DESTS:
+            continue
+        for path in value if isinstance(value, list) else [value]:
+            if isinstance(path, Path) and path.is_dir():
+                yield _argument_name(dest), path
+
+
+def _argument_name(dest: str) -> str:
+    return dest.upper() if dest in ("video", "track", "keys", "weights", "tracks", "takes") \
+        else "--" + dest.replace("_", "-")
 
 
 def _take_files(folder: Path) -> list[Path]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ._argtypes import positive, weight_bound
+from ._argtypes import address, positive, tcp_port, weight_bound
 from ._options import add_correspondence_option, add_visibility_option
 
 DESCRIPTION = """\
@@ -72,13 +72,13 @@ def add_arguments(p) -> None:
                    help="with --rig: propose a key -> target mapping for a rig with its own blendshapes")
     add_correspondence_option(p, when="with --auto-targets: ")
     out = p.add_argument_group("outputs (any combination, at least one)")
-    out.add_argument("--vmc", default=None, metavar="HOST:PORT",
+    out.add_argument("--vmc", type=address, default=None, metavar="HOST:PORT",
                      help="VMC protocol receiver (VSeeFace, VNyan, Warudo listen on 39539)")
-    out.add_argument("--livelink", default=None, metavar="HOST:PORT",
+    out.add_argument("--livelink", type=address, default=None, metavar="HOST:PORT",
                      help="Unreal Live Link Face receiver (port 11111); needs ARKit-named targets")
     out.add_argument("--subject", default="keyshape", help="Live Link subject name (default keyshape)")
     out.add_argument("--view", action="store_true", help="show camera and character in the browser")
-    out.add_argument("--port", type=int, default=0, metavar="N", help="--view: TCP port (default: any free one)")
+    out.add_argument("--port", type=tcp_port, default=0, metavar="N", help="--view: TCP port (default: any free one)")
     out.add_argument("--no-browser", action="store_true", help="--view: only print the address")
     out.add_argument("--record", type=Path, default=None, metavar="DIR",
                      help="write the take to DIR at the end: track.npz, keys.json, weights.csv, animation.glb")
@@ -155,16 +155,16 @@ def _smoothing_of(args):
 def _session(args, source, keys):
     """The outputs, once the key set is known."""
     from ..capture import BLENDSHAPE_NAMES
-    from ..live import LiveLinkSender, Recorder, Session, VmcSender, live_targets, parse_address
+    from ..live import LiveLinkSender, Recorder, Session, VmcSender, live_targets
 
     targets = live_targets(keys, rig=args.rig, mapping=args.map, auto_targets=args.auto_targets,
                            correspondence=args.correspondence, front=args.front,
                            need_rig=bool(args.view or args.record))
     outputs = []
     if args.vmc:
-        outputs.append(VmcSender(*parse_address(args.vmc, option="--vmc"), names=targets.names))
+        outputs.append(VmcSender(*args.vmc, names=targets.names))
     if args.livelink:
-        outputs.append(LiveLinkSender(*parse_address(args.livelink, option="--livelink"), names=targets.names,
+        outputs.append(LiveLinkSender(*args.livelink, names=targets.names,
                                       fps=source.fps, subject=args.subject))
     if args.record:
         outputs.append(Recorder(args.record, keys, fps=source.fps, image_size=source.size, rig=targets.rig,

@@ -58,10 +58,10 @@ def _check_rig(rig: Path) -> None:
     """The character must exist (a .glb must look like one) before the take is tracked."""
     if not rig.exists():
         raise InputError(f"{rig}: file not found")
-    if rig.suffix.lower() == ".glb":
-        from ..io.validate import check_glb
+    if rig.suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import check_gltf_file
 
-        check_glb(rig)
+        check_gltf_file(rig)
 
 
 def _video(args) -> Path:

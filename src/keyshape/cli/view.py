@@ -6,6 +6,7 @@ import errno
 from pathlib import Path
 
 from ..exceptions import InputError
+from ._argtypes import tcp_port
 
 DESCRIPTION = """\
 Serve a local page (on 127.0.0.1 only) for an output folder of `keyshape run` or
@@ -19,22 +20,10 @@ DEFAULT_PORT = 8765
 def add_arguments(p) -> None:
     p.add_argument("folder", type=Path, metavar="OUTDIR",
                    help="output folder of `keyshape run` / `keyshape demo` (with take.json)")
-    p.add_argument("--port", type=_port, default=None, metavar="N",
+    p.add_argument("--port", type=tcp_port, default=None, metavar="N",
                    help=f"TCP port (default {DEFAULT_PORT}, or any free one if that is taken)")
     p.add_argument("--no-browser", action="store_true",
                    help="only print the address; do not open a browser")
-
-
-def _port(text: str) -> int:
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"must be between 0 and 65535; got {value}")
-    return value
 
 
 def run(args) -> None:

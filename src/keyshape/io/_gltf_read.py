@@ -31,6 +31,7 @@ import pygltflib
 from ..containers import Rig
 from ..exceptions import InputError, RigError
 from ._gltf_nodes import parents, world_matrix
+from .validate import check_gltf_document
 
 COMPONENT_DTYPES = {
     pygltflib.BYTE: np.int8,
@@ -105,7 +106,9 @@ def load_document(path, *, editable: bool = True):
         raise InputError(f"cannot read {str(path)!r} as glTF: {error}") from error
     if document is None:
         raise InputError(f"cannot read {str(path)!r} as glTF")
-    return document, [_buffer_bytes(document, buffer, path) for buffer in document.buffers]
+    buffers = [_buffer_bytes(document, buffer, path) for buffer in document.buffers]
+    check_gltf_document(path, document, buffers)  # every index and byte range, before any is followed
+    return document, buffers
 
 
 class _Json:

@@ -1,8 +1,12 @@
-"""Atomic file writes (a failed write leaves no half-written file behind), and the check every reader makes."""
+"""Atomic file writes (a failed write leaves no half-written file behind, and names its file), staged folders,
+and the check every reader makes."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import glob
+import json
 import os
 import shutil
 import signal
@@ -12,9 +16,10 @@ import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from ..exceptions import InputError
+from ..exceptions import InputError, WriteError
 
-__all__ = ["atomic_path", "staged_folder", "existing_file", "held_signals"]
+__all__ = ["atomic_path", "new_folders", "named_write_errors", "staged_folder", "check_switched", "remove_dead_stages",
+           "existing_file", "held_signals", "SWITCH"]
 
 
 def _umask() -> int:
@@ -31,16 +36,63 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     The temporary name keeps the suffix so writers that dispatch on it still work.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
+    with new_folders(path.parent):
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
+        os.close(fd)
+        tmp = Path(tmp)
+        try:
+            with named_write_errors(path):
+                yield tmp
+                os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+                os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def new_folders(folder: str | Path) -> Iterator[Path]:
+    """``folder``, made with its missing parents; when the block fails (an error, Ctrl-C, SIGTERM),
+    the folders it made that are still empty are removed again: a stopped command leaves no empty
+    output folder behind."""
+    folder = Path(folder)
+    missing, above = [], folder
+    while not above.exists() and above != above.parent:
+        missing.append(above)  # the deepest first
+        above = above.parent
+    folder.mkdir(parents=True, exist_ok=True)
     try:
-        yield tmp
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+        yield folder
+    except BaseException:
+        for made in missing:
+            try:
+                made.rmdir()
+            except OSError:  # not empty (or not ours to remove): it and those above stay
+                break
+        raise
+
+
+_NO_ROOM = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS})
+
+
+@contextlib.contextmanager
+def named_write_errors(path: str | Path) -> Iterator[None]:
+    """Turn a failed write inside the block that names no file (a full disk: ``[Errno 28] No space
+    left on device``, a quota, a read-only or failing disk) into a
+    :class:`~keyshape.exceptions.WriteError` naming ``path``, the file (or folder) being written."""
+    try:
+        yield
+    except WriteError:
+        raise
+    except OSError as exc:
+        if exc.errno not in _NO_ROOM:
+            raise
+        error = WriteError(f"{path}: cannot write ({exc.strerror or exc})")
+        error.errno = exc.errno
+        raise error from exc
+
+
+SWITCH = ".keyshape-switch"  # in a folder while a stage's files move in: its presence says "incomplete"
+_STAGE = ".keyshape-stage"  # the end of every stage folder's name (".<folder>.<random>.keyshape-stage")
 
 
 @contextlib.contextmanager
@@ -54,31 +106,130 @@ def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = N
     removed after the move; other files are never touched.
 
     The switch is one step: Ctrl-C and SIGTERM wait until every file is in (:func:`held_signals`),
-    so ``folder`` holds the old outputs or the new ones, never a mix. ``record``: the file that
-    says the folder is complete (``take.json``); its old copy is removed first and the new one
-    moved in last, so a switch cut short all the same (power lost, SIGKILL) leaves a folder
-    without it, detectably incomplete.
+    so ``folder`` holds the old outputs or the new ones, never a mix. A switch cut short all the
+    same (power lost, SIGKILL) is detectable and mended by the next one: while the files move,
+    ``folder/.keyshape-switch`` lists every name of either output (:func:`check_switched` refuses
+    such a folder, naming it), and the next switch into ``folder`` counts those names as owned, so
+    none of the mix survives it. ``record``: the file that says the folder is complete
+    (``take.json``); its old copy is removed first and the new one moved in last.
+
+    A stage whose process is gone (killed mid-take: a Ray worker, SIGKILL) is removed by the next
+    stage beside it (:func:`remove_dead_stages`): every stage is locked by its process while it lives.
     """
     folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
-        yield stage
-        written = sorted(p.name for p in stage.iterdir())
-        if record in written:
-            written = [name for name in written if name != record] + [record]
-        with held_signals():
-            folder.mkdir(exist_ok=True)
+    with new_folders(folder.parent):
+        remove_dead_stages(folder.parent, folder.name)
+        stage, lock = _locked_stage(folder)
+        try:
+            yield stage
+            written = sorted(p.name for p in stage.iterdir())
             if record in written:
-                (folder / record).unlink(missing_ok=True)
-            for name in written:
-                (stage / name).replace(folder / name)
-            if owned is not None:
-                for old in folder.iterdir():
-                    if old.is_file() and old.name not in written and owned(old.name):
-                        old.unlink()
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+                written = [name for name in written if name != record] + [record]
+            with held_signals():
+                _switch(stage, folder, written, owned, record)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+            os.close(lock)
+
+
+def _switch(stage: Path, folder: Path, written: list[str], owned: Callable[[str], bool] | None,
+            record: str | None) -> None:
+    """Move the files ``written`` from ``stage`` into ``folder`` (``record`` last), remove the stale
+    ones, with the journal :data:`SWITCH` in ``folder`` from the first step to the last."""
+    folder.mkdir(exist_ok=True)
+    cut = _switch_names(folder)  # an earlier switch cut short: its names are ours
+    stale = sorted(p.name for p in folder.iterdir() if p.is_file() and p.name not in written and p.name != SWITCH
+                   and (p.name in cut or (owned is not None and owned(p.name))))
+    journal = {"format": "keyshape-switch", "stage": stage.name, "names": sorted({*written, *stale, *cut})}
+    with atomic_path(folder / SWITCH) as tmp:
+        tmp.write_text(json.dumps(journal) + "\n")
+    if record in written:
+        (folder / record).unlink(missing_ok=True)
+    for name in written:
+        if name == record:
+            for old in stale:
+                (folder / old).unlink(missing_ok=True)
+        (stage / name).replace(folder / name)
+    if record not in written:
+        for old in stale:
+            (folder / old).unlink(missing_ok=True)
+    (folder / SWITCH).unlink()
+
+
+def _switch_names(folder: Path) -> frozenset[str]:
+    """The plain file names a cut-short switch into ``folder`` left in its journal (empty if none)."""
+    try:
+        names = json.loads((folder / SWITCH).read_text()).get("names", [])
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return frozenset()
+    return frozenset(n for n in names if isinstance(n, str) and n and n == Path(n).name and n not in (".", ".."))
+
+
+def check_switched(folder: str | Path) -> None:
+    """Raise InputError naming ``folder`` when a switch of staged files into it was cut short
+    (its ``.keyshape-switch`` remains): it then holds a mix of two outputs."""
+    journal = Path(folder) / SWITCH
+    if journal.exists():
+        raise InputError(f"{folder}: the last output moved into it was cut short ({journal} remains), so it "
+                         "holds a mix of two outputs; run the command that wrote it again")
+
+
+def _locked_stage(folder: Path) -> tuple[Path, int]:
+    """A new stage folder beside ``folder`` and a descriptor of it holding its lock (``flock``;
+    released when the process ends, however it ends)."""
+    while True:
+        stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=_STAGE, dir=folder.parent))
+        try:
+            fd = os.open(stage, os.O_RDONLY)
+        except FileNotFoundError:  # taken for a dead one's before it was locked
+            continue
+        if _try_lock(fd) and _same_inode(fd, stage):  # not taken for a dead one's meanwhile
+            return stage, fd
+        os.close(fd)
+
+
+def remove_dead_stages(parent: str | Path, name: str | None = None) -> list[Path]:
+    """Remove the stage folders in ``parent`` (of the folder ``name``, or of any) whose process is
+    gone: their lock is free. Returns them. Without ``fcntl`` (Windows) none can be told dead."""
+    found = []
+    pattern = f".{glob.escape(name)}.*{_STAGE}" if name is not None else f".*{_STAGE}"
+    for stage in Path(parent).glob(pattern):
+        try:
+            fd = os.open(stage, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            if stage.is_dir() and not stage.is_symlink() and _try_lock(fd, probe=True) and _same_inode(fd, stage):
+                shutil.rmtree(stage, ignore_errors=True)
+                found.append(stage)
+        finally:
+            os.close(fd)
+    return found
+
+
+def _try_lock(fd: int, *, probe: bool = False) -> bool:
+    """Take the exclusive lock of ``fd`` without waiting; whether it was free. Where locks are not to
+    be had (no ``fcntl``: Windows; a file system without them): True for a stage's own lock, False
+    for a probe (a stage cannot be told dead there, so none is removed)."""
+    try:
+        import fcntl
+    except ImportError:
+        return not probe
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:  # held: a living process's
+        return False
+    except OSError:  # ENOLCK, EINVAL...: no locks here
+        return not probe
+    return True
+
+
+def _same_inode(fd: int, path: Path) -> bool:
+    try:
+        a, b = os.fstat(fd), os.stat(path, follow_symlinks=False)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
 
 
 @contextlib.contextmanager

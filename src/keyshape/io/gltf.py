@@ -73,9 +73,23 @@ from .atomic import atomic_path
 from .validate import check_weight_values
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
-           "read_meshes", "read_colours", "eye_nodes", "GlbAnimation", "Part"]
+           "read_meshes", "read_colours", "eye_nodes", "check_gltf_file", "GlbAnimation", "Part"]
 
 ANIMATION = ANIMATION_NAMES[0]
+
+
+def check_gltf_file(path: str | Path) -> Path:
+    """``path`` if it reads as glTF whose every index and byte range holds (a .glb's header too:
+    :func:`~keyshape.io.validate.check_glb`, then
+    :func:`~keyshape.io.validate.check_gltf_document`); else InputError naming it. For a file
+    read later (the preview's, the viewer's), said before any work."""
+    from .validate import check_glb
+
+    path = Path(path)
+    if path.suffix.lower() == ".glb":
+        check_glb(path)
+    load_document(path, editable=False)
+    return path
 
 
 # --------------------------------------------------------------------------- a new file

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ..containers import KeyShapes, Track
 from ..exceptions import InputError, InputWarning
-from .atomic import atomic_path
+from .atomic import atomic_path, check_switched
 from .validate import check_take_info
 
 __all__ = ["save_take_info", "load_take_info", "take_video", "record_written", "written_by", "TAKE_FILES"]
@@ -46,6 +46,7 @@ def save_take_info(path: str | Path, *, video: Path, track: Track, keys: KeyShap
 def load_take_info(folder: str | Path) -> dict:
     """Read ``take.json`` from an output folder of ``keyshape run``."""
     path = Path(folder) / "take.json"
+    check_switched(folder)  # a run's switch cut short: a mix of two takes, take.json or not
     if not path.is_file():
         raise InputError(f"{folder}: no take.json here; is it an output folder of `keyshape run`?")
     try:

@@ -1,5 +1,5 @@
 """One validator per file format keyshape reads: track ``.npz``, ``keys.json``, ``weights.csv``,
-``take.json`` (and the header of an animation ``.glb``).
+``take.json``, the header of a ``.glb`` and every cross-reference of a glTF document.
 
 Each reader in :mod:`keyshape.io` calls its validator before it builds a core type, so every
 verb that reads a format checks it the same way, and a broken file is one line naming the file,
@@ -21,7 +21,8 @@ import numpy as np
 from ..exceptions import InputError
 
 __all__ = ["check_track_arrays", "check_keys_data", "check_weights_table", "check_take_info", "check_glb",
-           "check_weight_values", "MAX_COORDINATE", "MAX_WEIGHT", "MAX_GAIN", "MAX_FPS", "TRACK_FORMAT_VERSION"]
+           "check_gltf_document", "check_weight_values", "MAX_COORDINATE", "MAX_WEIGHT", "MAX_GAIN", "MAX_FPS",
+           "TRACK_FORMAT_VERSION"]
 
 MAX_COORDINATE = 1e6  # |landmark coordinate| in pixels: beyond it a track is corrupt, not a face
 MAX_WEIGHT = 5.0  # a weight above it is no blend of key shapes (solve writes 0 <= w <= --max)
@@ -534,3 +535,141 @@ def check_glb(path: str | Path) -> Path:
     if length != size:
         raise InputError(f"{path}: a damaged .glb: its header says {length} bytes, the file has {size}")
     return path
+
+
+_COMPONENT_SIZES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}  # BYTE ... FLOAT
+_TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+def check_gltf_document(path, document, buffers: list[bytes]) -> None:
+    """Every index a glTF document's objects give into another list (an accessor's buffer view, a
+    primitive's accessors, a node's mesh and children, an animation's samplers and nodes, a
+    texture's image) names an element that exists, and every accessor's bytes lie inside its view
+    and every view inside its buffer; else InputError naming the file, the member and the index.
+
+    ``document``: a :class:`pygltflib.GLTF2` or the reader's read-only parse (attribute access,
+    missing members None); ``buffers``: the bytes of each buffer.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace as O
+    >>> doc = O(accessors=[], bufferViews=[], buffers=[], meshes=[O(primitives=[O(attributes={"POSITION": 3},
+    ...         indices=None, targets=None)])], nodes=[], scenes=[], animations=[], skins=[], images=[],
+    ...         textures=[], materials=[])
+    >>> check_gltf_document("rig.glb", doc, [])
+    Traceback (most recent call last):
+    ...
+    keyshape.exceptions.InputError: rig.glb: a damaged glTF: meshes[0].primitives[0].attributes.POSITION is 3, \
+but the file has 0 accessors
+    """
+    lists = {name: list(getattr(document, name, None) or []) for name in
+             ("accessors", "bufferViews", "buffers", "meshes", "nodes", "images", "textures", "samplers", "skins")}
+
+    def ref(where: str, value, kind: str, *, optional: bool = True) -> None:
+        if value is None and optional:
+            return
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < len(lists[kind]):
+            raise InputError(f"{path}: a damaged glTF: {where} is {_show(value)}, but the file has "
+                             f"{len(lists[kind])} {kind}")
+
+    for b, view in enumerate(lists["bufferViews"]):
+        ref(f"bufferViews[{b}].buffer", getattr(view, "buffer", None), "buffers", optional=False)
+        end = _int(getattr(view, "byteOffset", None)) + _int(getattr(view, "byteLength", None))
+        if end > len(buffers[view.buffer]):
+            raise InputError(f"{path}: a damaged glTF: bufferViews[{b}] ends at byte {end}, past the end of "
+                             f"buffer {view.buffer}")
+    for a, accessor in enumerate(lists["accessors"]):
+        _check_accessor(path, f"accessors[{a}]", accessor, lists["bufferViews"], ref)
+    for m, mesh in enumerate(lists["meshes"]):
+        for p, primitive in enumerate(getattr(mesh, "primitives", None) or []):
+            where = f"meshes[{m}].primitives[{p}]"
+            for name, index in _members(getattr(primitive, "attributes", None)).items():
+                ref(f"{where}.attributes.{name}", index, "accessors")
+            ref(f"{where}.indices", getattr(primitive, "indices", None), "accessors")
+            for t, target in enumerate(getattr(primitive, "targets", None) or []):
+                for name, index in _members(target).items():
+                    ref(f"{where}.targets[{t}].{name}", index, "accessors")
+    for n, node in enumerate(lists["nodes"]):
+        ref(f"nodes[{n}].mesh", getattr(node, "mesh", None), "meshes")
+        ref(f"nodes[{n}].skin", getattr(node, "skin", None), "skins")
+        for c, child in enumerate(getattr(node, "children", None) or []):
+            ref(f"nodes[{n}].children[{c}]", child, "nodes", optional=False)
+    for s, scene in enumerate(getattr(document, "scenes", None) or []):
+        for k, node in enumerate(getattr(scene, "nodes", None) or []):
+            ref(f"scenes[{s}].nodes[{k}]", node, "nodes", optional=False)
+    for k, skin in enumerate(lists["skins"]):
+        ref(f"skins[{k}].inverseBindMatrices", getattr(skin, "inverseBindMatrices", None), "accessors")
+        for j, joint in enumerate(getattr(skin, "joints", None) or []):
+            ref(f"skins[{k}].joints[{j}]", joint, "nodes", optional=False)
+    for k, animation in enumerate(getattr(document, "animations", None) or []):
+        samplers = list(getattr(animation, "samplers", None) or [])
+        for s, sampler in enumerate(samplers):
+            ref(f"animations[{k}].samplers[{s}].input", getattr(sampler, "input", None), "accessors", optional=False)
+            ref(f"animations[{k}].samplers[{s}].output", getattr(sampler, "output", None), "accessors", optional=False)
+        for c, channel in enumerate(getattr(animation, "channels", None) or []):
+            index = getattr(channel, "sampler", None)
+            if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(samplers):
+                raise InputError(f"{path}: a damaged glTF: animations[{k}].channels[{c}].sampler is {_show(index)}, "
+                                 f"but the animation has {len(samplers)} samplers")
+            ref(f"animations[{k}].channels[{c}].target.node", getattr(getattr(channel, "target", None), "node", None),
+                "nodes")
+    for i, image in enumerate(lists["images"]):
+        ref(f"images[{i}].bufferView", getattr(image, "bufferView", None), "bufferViews")
+    for t, texture in enumerate(lists["textures"]):
+        ref(f"textures[{t}].source", getattr(texture, "source", None), "images")
+
+
+def _check_accessor(path, where: str, accessor, views: list, ref) -> None:
+    """One accessor: known component type and type, a whole count, its bytes inside its view."""
+    kind, shape, count = (getattr(accessor, name, None) for name in ("componentType", "type", "count"))
+    if kind not in _COMPONENT_SIZES or shape not in _TYPE_WIDTHS:
+        raise InputError(f"{path}: a damaged glTF: {where} has componentType {_show(kind)} and type {_show(shape)}")
+    if not isinstance(count, int) or isinstance(count, bool) or count < 0:
+        raise InputError(f"{path}: a damaged glTF: {where}.count is {_show(count)}")
+    element = _COMPONENT_SIZES[kind] * _TYPE_WIDTHS[shape]
+    parts = [(where, getattr(accessor, "bufferView", None), getattr(accessor, "byteOffset", None), count, element)]
+    sparse = getattr(accessor, "sparse", None)
+    if sparse is not None:
+        n = getattr(sparse, "count", None)
+        if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= count:
+            raise InputError(f"{path}: a damaged glTF: {where}.sparse.count is {_show(n)}")
+        indices, values = getattr(sparse, "indices", None), getattr(sparse, "values", None)
+        size = _COMPONENT_SIZES.get(getattr(indices, "componentType", None))
+        if size is None or values is None:
+            raise InputError(f"{path}: a damaged glTF: {where}.sparse lacks its indices or values")
+        ref(f"{where}.sparse.indices.bufferView", getattr(indices, "bufferView", None), "bufferViews", optional=False)
+        ref(f"{where}.sparse.values.bufferView", getattr(values, "bufferView", None), "bufferViews", optional=False)
+        parts += [(f"{where}.sparse.indices", indices.bufferView, getattr(indices, "byteOffset", None), n, size),
+                  (f"{where}.sparse.values", values.bufferView, getattr(values, "byteOffset", None), n, element)]
+    for name, view, offset, n, size in parts:
+        ref(f"{name}.bufferView", view, "bufferViews")
+        if view is None or n == 0:
+            continue
+        stride = getattr(views[view], "byteStride", None) or size
+        end = _int(offset) + (n - 1) * _int(stride) + size
+        if end > _int(getattr(views[view], "byteLength", None)):
+            raise InputError(f"{path}: a damaged glTF: {name} needs {end} bytes of bufferViews[{view}], which has "
+                             f"{_int(getattr(views[view], 'byteLength', None))}")
+
+
+def _int(value) -> int:
+    """A byte count or offset as an int (a missing one is 0; a negative or non-integer one too large to fit)."""
+    if value is None:
+        return 0
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        return 1 << 62
+    return value
+
+
+def _members(value) -> dict:
+    """The members of a glTF object read either way (a dict, the parse's attribute-access object, a
+    pygltflib dataclass), without the unset ones."""
+    if value is None:
+        return {}
+    if isinstance(value, dict):
+        members = value
+    elif hasattr(value, "_members"):
+        members = value._members
+    else:
+        members = vars(value)
+    return {k: v for k, v in members.items() if v is not None}

@@ -154,17 +154,17 @@ class _Take:
 
 def _load_take(outdir: Path) -> _Take:
     from ..alignment import align
+    from ..io.gltf import check_gltf_file
     from ..io.keys_json import load_keys
     from ..io.take import load_take_info, take_video
     from ..io.track import load_track
-    from ..io.validate import check_glb
     from ..io.weights_csv import load_weights_csv
 
     info = load_take_info(outdir)
     files = info.get("files") or {}
     animation = outdir / files.get("animation", "animation.glb")
     if animation.is_file():
-        check_glb(animation)  # a damaged one is said even when no preview is made
+        check_gltf_file(animation)  # a damaged one is said even when no preview is made
     track = load_track(outdir / files.get("track", "track.npz"))
     keys = load_keys(outdir / files.get("keys", "keys.json"))
     weights = load_weights_csv(outdir / files.get("weights", "weights.csv"))

@@ -34,7 +34,6 @@ from urllib.parse import unquote, urlsplit
 
 from ..exceptions import InputError
 from ..io.take import load_take_info
-from ..io.validate import check_glb
 
 __all__ = ["Take", "load_take", "make_server", "ViewerServer", "parse_range"]
 
@@ -115,7 +114,9 @@ def load_take(folder: str | Path) -> Take:
     animation = Path(listed.get("animation", "animation.glb")).name
     if animation not in files:
         raise InputError(f"{folder}: no {animation} here to show; run `keyshape run` again")
-    check_glb(files[animation])
+    from ..io.gltf import check_gltf_file
+
+    check_gltf_file(files[animation])
     video = Path(info["video"]) if info.get("video") else None
     keys_name = Path(listed.get("keys", "keys.json")).name
     track = files.get(Path(listed.get("track", "track.npz")).name)
