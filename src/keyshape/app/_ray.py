@@ -92,6 +92,11 @@ class RayRunner:
         kwargs = self._init_kwargs()
         if self.address is None:
             self._temp_dir = kwargs["_temp_dir"] = tempfile.mkdtemp(prefix="keyshape-ray-", dir=_session_parent())
+            # the workers' temporary files (a take's tracking spool) go with the instance's: a
+            # worker killed mid-take leaves nothing in the system's temporary folder
+            work = os.path.join(self._temp_dir, "work")
+            os.mkdir(work)
+            kwargs["runtime_env"]["env_vars"]["TMPDIR"] = work
         main = threading.current_thread() is threading.main_thread()
         previous = signal.getsignal(signal.SIGTERM) if main else None
         try:
