@@ -238,3 +238,55 @@ def test_report_states_the_correspondence_quality(tmp_path):
     assert "3 of 478 landmarks on its surface" in result.report.read_text(encoding="utf-8")
     given = Correspondence.from_vertex_ids([4, 5, 6])
     assert given.quality() is None and "quality" not in given.to_dict()
+
+
+def _open_report(browser, path: Path) -> dict:
+    """``report.html`` opened from disk in Chromium: what the reader sees of the preview."""
+    page = browser.new_page()
+    errors = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(path.as_uri())
+    page.wait_for_function("(() => { const v = document.getElementById('preview');"
+                           " return v.error !== null || v.readyState >= 1; })()", timeout=20_000)
+    page.wait_for_timeout(200)
+    seen = page.evaluate("""() => {
+      const video = document.getElementById('preview'), note = document.getElementById('preview-missing');
+      return {playerShown: !video.hidden && video.getBoundingClientRect().height > 0,
+              duration: video.duration || 0,
+              noteShown: !!note && !note.hidden && note.getBoundingClientRect().height > 0,
+              note: note ? note.innerText : null};
+    }""")
+    page.close()
+    assert errors == []
+    return seen
+
+
+@pytest.mark.browser
+def test_report_opened_without_its_preview_says_so(extras, browser, tmp_path):
+    """Issue 36 item 10: report.html opened on its own tells the reader where the video went and what
+    to do (no empty player); beside preview.mp4 it plays it; `report --embed-video` carries it."""
+    import shutil
+
+    from keyshape.cli import main
+
+    copy = Path(shutil.copytree(extras[0], tmp_path / "take"))
+    assert main(["report", str(copy), "--no-preview", "-q"]) == 0  # the preview.mp4 already there, linked
+    beside = _open_report(browser, copy / "report.html")
+    assert beside["playerShown"] and beside["duration"] == pytest.approx(40 / 25, abs=0.1)
+    assert not beside["noteShown"]
+
+    alone = tmp_path / "mailed" / "report.html"
+    alone.parent.mkdir()
+    shutil.copy(copy / "report.html", alone)
+    seen = _open_report(browser, alone)
+    assert seen["noteShown"] and not seen["playerShown"]
+    assert seen["note"] == ("The preview video is not here. This page plays preview.mp4 from its own folder, and "
+                            "there is no preview.mp4 beside it: open the report in the take's output folder, copy "
+                            "preview.mp4 next to it, or write a report that carries the video: "
+                            "keyshape report FOLDER --embed-video.")
+
+    assert main(["report", str(copy), "--no-preview", "--embed-video", "-q"]) == 0
+    shutil.copy(copy / "report.html", alone)
+    embedded = _open_report(browser, alone)
+    assert embedded["note"] is None and embedded["playerShown"]
+    assert embedded["duration"] == pytest.approx(40 / 25, abs=0.1)
