@@ -290,3 +290,37 @@ def test_report_opened_without_its_preview_says_so(extras, browser, tmp_path):
     embedded = _open_report(browser, alone)
     assert embedded["note"] is None and embedded["playerShown"]
     assert embedded["duration"] == pytest.approx(40 / 25, abs=0.1)
+
+
+def test_report_on_a_mapped_rig_shows_the_map_and_the_rigs_curves(tmp_path):
+    """Issue 36 item 11: with a map.json (an ARKit rig driven through the map), the report heads its keys
+    as what the map turns into the rig's shapes, not "the sculpt list", lists each key's targets with their
+    gains, and plots the rig's own curves (jawOpen, mouthSmile_L, ...) from animation.glb."""
+    from keyshape.containers import Rig
+    from keyshape.io.gltf import write_glb
+    from keyshape.io.keys_json import load_keys
+    from keyshape.io.weights_csv import load_weights_csv
+    from keyshape.targets import Mapping, retarget
+
+    folder = make_take_folder(tmp_path / "take", n_frames=30, n_missing=0)
+    keys, weights = load_keys(folder / "keys.json"), load_weights_csv(folder / "weights.csv")
+    targets = ("jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp")
+    gains = {keys.names[0]: {"browInnerUp": 0.8}, keys.names[-1]: {"jawOpen": 0.9, "mouthSmile_L": 0.3}}
+    mapping = Mapping.from_dict(gains, targets=targets, sources=keys.names)
+    mapping.save(folder / "map.json")
+    rig = Rig(np.eye(3), [[0, 1, 2]], np.full((4, 3, 3), 0.01), targets)
+    write_glb(folder / "animation.glb", rig, retarget(weights, mapping))
+    result = write_take_extras(folder, progress=False, preview=False)
+    text = result.report.read_text(encoding="utf-8")
+    assert "the sculpt list" not in text
+    assert "<h2>Key shapes: what map.json turns into the rig&#x27;s own shapes</h2>" in text
+    row = re.search(rf'<tr data-key="{keys.names[-1]}">(.*?)</tr>', text).group(1)
+    assert row == f"<td>{keys.names[-1]}</td><td>jawOpen ×0.90, mouthSmile_L ×0.30</td>"
+    assert re.search(rf'<tr data-key="{keys.names[1]}">(.*?)</tr>', text).group(1).endswith("<td><i>none</i></td>")
+    assert "<h2>The rig&#x27;s own shapes over time (animation.glb)</h2>" in text
+    assert len(re.findall(r'<img[^>]+src="data:image/png;base64,', text)) == 3  # sheet, weights, rig curves
+    assert not (folder / "rig.png").exists()  # in the page only: the take folder's files stay as they were
+
+    plain = make_take_folder(tmp_path / "plain", n_frames=30, n_missing=0)  # keys drive targets of their names
+    text = write_take_extras(plain, progress=False, preview=False).report.read_text(encoding="utf-8")
+    assert "Key shapes: the sculpt list" in text and 'id="map"' not in text

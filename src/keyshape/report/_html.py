@@ -35,7 +35,7 @@ td.n{text-align:right;font-variant-numeric:tabular-nums} img,video{max-width:100
 
 
 def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: dict[str, Path],
-                 video: str | None = None, notes: list[str] | None = None) -> Path:
+                 video: str | None = None, notes: list[str] | None = None, mapping: dict | None = None) -> Path:
     """Write the HTML report (everything in it but a linked video), atomically.
 
     Parameters
@@ -52,6 +52,9 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
         The preview video as a path relative to the report, or a ``data:`` URI.
     notes : list of str, optional, keyword-only
         Extra remarks (e.g. a missing source video), shown under the title.
+    mapping : dict, optional, keyword-only
+        ``{key: {target: gain}}``: the map that drives the rig's own shapes (``map.json``), shown
+        as a table under the key shapes.
 
     Returns
     -------
@@ -69,8 +72,10 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     for caption_text, png in images.items():
         parts += [f"<h2>{html.escape(caption_text)}</h2>",
                   f'<img alt="{html.escape(caption_text)}" src="{data_uri(png, "image/png")}">']
-    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"], numbers.get("key_frames")),
-              _definitions(numbers)]
+    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"], numbers.get("key_frames"))]
+    if mapping:
+        parts += ["<h2>The map: key shapes to the rig's shapes (map.json)</h2>", _map_table(keys, mapping)]
+    parts += [_definitions(numbers)]
     data = json.dumps(numbers).replace("</", "<\\/")
     document = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
                 f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>\n"
@@ -181,6 +186,20 @@ def _keys_table(keys: KeyShapes, fps: float, video_frames=None) -> str:
                    f"<td>{html.escape(keys.takes[k])}</td></tr>" for k in range(keys.n_keys))
     return ('<table id="keys"><tr><th>name</th><th>region</th><th>video frame</th><th>time</th><th>take</th></tr>'
             f"{rows}</table>")
+
+
+def _map_table(keys: KeyShapes, mapping: dict, shown: int = 6) -> str:
+    """One row per key: the rig's shapes it drives, strongest first (``shown`` of them), with their gains."""
+    rows = []
+    for name in [*keys.names, *(k for k in mapping if k not in keys.names)]:
+        drives = sorted(((g, t) for t, g in mapping.get(name, {}).items() if g > 0), reverse=True)
+        terms = ", ".join(f"{html.escape(t)} ×{g:.2f}" for g, t in drives[:shown])
+        if len(drives) > shown:
+            terms += f", … ({len(drives) - shown} more)"
+        rows.append(f'<tr data-key="{html.escape(name)}"><td>{html.escape(name)}</td>'
+                    f"<td>{terms or '<i>none</i>'}</td></tr>")
+    return ('<table id="map"><tr><th>key shape</th><th>drives the rig\'s shapes (gain: the shape\'s weight at '
+            f"the key's full weight)</th></tr>{''.join(rows)}</table>")
 
 
 def _definitions(n: dict) -> str:

@@ -21,7 +21,7 @@ from ..render.draw import OTHER_COLOUR, region_palette
 if TYPE_CHECKING:
     from ._take import FitQuality
 
-__all__ = ["contact_sheet", "weight_curves", "error_vs_k"]
+__all__ = ["contact_sheet", "weight_curves", "rig_curves", "error_vs_k"]
 
 _GAP_COLOUR = "#9a9a9a"
 _KEY_COLOURS = ("#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666",
@@ -295,6 +295,31 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """
     edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
     return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def rig_curves(weights: Weights, path, *, shown: int = 12) -> Path:
+    """The rig's own target weights over time (``jawOpen``, ``mouthSmile_L``, ...): the ``shown``
+    most active (largest range over the take), each its own colour, named in the legend.
+
+    ``weights``: ``values (n_frames, n_targets)`` named by the rig's targets.
+    """
+    values = np.nan_to_num(np.asarray(weights.values, dtype=float))
+    spread = values.max(axis=0) - values.min(axis=0) if len(values) else np.zeros(len(weights.names))
+    order = [int(t) for t in np.argsort(-spread, kind="stable")[:shown] if spread[t] > 0]
+    figure = _figure(12, 3.2)
+    ax = figure.subplots()
+    for t, colour in zip(order, key_colours(len(order))):
+        ax.plot(weights.times, values[:, t], lw=1.0, color=colour, label=weights.names[t])
+    ax.set_ylabel("rig shape\nweight")
+    ax.set_xlabel("time (s)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.25)
+    rest = len(weights.names) - len(order)
+    ax.set_title(f"the {len(order)} most active of the rig's {len(weights.names)} shapes"
+                 + (f" ({rest} move less or not at all)" if rest else ""), fontsize=9, loc="left")
+    if order:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=7, frameon=False)
+    return _save(figure, path)
 
 
 # --------------------------------------------------------------------------- error vs K
