@@ -493,3 +493,151 @@ def test_head_and_eye_objects_turn(tmp_path, suffix):
         relative = np.einsum("fij,kj->fik", seen[name], seen[name][0])  # W_f W_0ᵀ = G T_f T_0ᵀ Gᵀ
         expected = np.einsum("ij,fjk,lk,ml->fim", G, turn, turn[0], G)
         np.testing.assert_allclose(relative, expected, atol=2e-3, err_msg=name)
+
+
+# ---------------------------------------------------------------- the take's animation.glb: gaze curves, head and eyes
+
+RPM = Path(__file__).resolve().parents[2] / "shared" / "data" / "rpm" / "RPM_Template_Mesh_XR.glb"
+needs_rpm = pytest.mark.skipif(not RPM.is_file(), reason=f"the Ready Player Me avatar is not at {RPM}")
+
+# the add-on's Take import onto a character imported from a glb (its own animation left as it came);
+# per frame from the scene's first: every shape key on the chosen mesh, the named bones' and objects'
+# world rotations, and each rest pose's (frame 0 of nothing: the armature's rest)
+IMPORT_ONTO = INSTALL + """
+import numpy as np
+take, character, mesh_name, nodes = sys.argv[-5], sys.argv[-4], sys.argv[-3], sys.argv[-2].split(",")
+bpy.ops.import_scene.gltf(filepath=character)
+face = bpy.data.objects[mesh_name]
+for o in bpy.context.selected_objects:
+    o.select_set(False)
+face.select_set(True)
+bpy.context.view_layer.objects.active = face
+def world(name):
+    obj = bpy.data.objects.get(name)
+    if obj is not None:
+        m = obj.matrix_world
+    else:
+        arm = next(o for o in bpy.data.objects if o.type == "ARMATURE" and name in o.pose.bones)
+        m = arm.matrix_world @ arm.pose.bones[name].matrix
+    u, _, vt = np.linalg.svd(np.array(m)[:3, :3])
+    return (u @ vt).tolist()
+rest = {}
+for arm in [o for o in bpy.data.objects if o.type == "ARMATURE"]:
+    for b in arm.pose.bones:
+        b.matrix_basis.identity()
+bpy.context.view_layer.update()
+rest = {n: world(n) for n in nodes if bpy.data.objects.get(n) is None}
+assert bpy.ops.keyshape.import_take(directory=take) == {"FINISHED"}
+scene = bpy.context.scene
+names = [k.name for k in face.data.shape_keys.key_blocks[1:]]
+values, turns = [], {n: [] for n in nodes}
+for frame in range(scene.frame_start, scene.frame_end + 1):
+    scene.frame_set(frame)
+    values.append({n: face.data.shape_keys.key_blocks[n].value for n in names})
+    for n in nodes:
+        turns[n].append(world(n))
+action = face.data.shape_keys.animation_data.action
+print("RESULT " + json.dumps({"values": values, "turns": turns, "rest": rest,
+                              "curves": sorted(c.data_path for c in action.fcurves)}), flush=True)
+"""
+
+
+def _install_env(tmp_path):
+    return {f"BLENDER_USER_{k}": str(tmp_path / k.lower()) for k in ("SCRIPTS", "CONFIG", "RESOURCES", "EXTENSIONS")}
+
+
+@needs_blender
+@pytest.mark.slow
+def test_addon_import_keeps_the_demo_heads_gaze_curves_and_turn(demo_out, tmp_path):
+    """Issue 36 item 5: "Import take" onto the demo's own animation.glb keeps its 8 eyeLook* curves
+    (31 curves, not 23) and keys the head's turn, each frame as the glb has it."""
+    assert main(["blender-addon", "-o", str(tmp_path), "-q"]) == 0
+    (addon,) = tmp_path.glob("*.zip")
+    glb = read_glb_animation(demo_out / "animation.glb")
+    seen = _blender(tmp_path, IMPORT_ONTO, demo_out, demo_out / "animation.glb", "face", "face", addon,
+                    env=_install_env(tmp_path))
+    assert len(seen["curves"]) == len(glb.names) == 31
+    assert len(seen["values"]) == glb.weights.shape[0]
+    values = np.array([[f[n] for n in glb.names] for f in seen["values"]])
+    gaze = [k for k, n in enumerate(glb.names) if n.startswith("eyeLook")]
+    assert len(gaze) == 8 and np.ptp(values[:, gaze], axis=0).min() > 0.01  # every one moves
+    np.testing.assert_allclose(values, glb.weights, atol=1e-4)
+    x, y, z, w = np.asarray(glb.rotations, dtype=float).T  # the face node's own rotation, glTF axes
+    turn = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                     np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                     np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], 1)
+    expected = np.einsum("ij,fjk,lk->fil", GLTF_TO_BLENDER, turn, GLTF_TO_BLENDER)
+    np.testing.assert_allclose(np.array(seen["turns"]["face"]), expected, atol=2e-3)
+
+
+@needs_blender
+@needs_rpm
+def test_addon_import_keys_the_head_and_eye_bones_and_the_gaze(tmp_path):
+    """Issue 36 item 5: a take on a Ready Player Me avatar: the Head bone turns by G D Gᵀ, each eye bone by
+    G D E Gᵀ (D, E the take's head and gaze turns, glTF axes), the eyeLook* shape keys from animation.glb,
+    the mapped shape keys from weights.csv; the avatar imported fresh, without animation of its own."""
+    from scipy.spatial.transform import Rotation
+
+    from keyshape.io.gltf import eye_nodes
+    from keyshape.schemes import rotations_to_gltf
+
+    n, rng = 12, np.random.default_rng(4)
+    keys = Weights(rng.random((n, 2)), ("k0", "k1"), fps=30.0)
+    save_weights_csv(keys, tmp_path / "take" / "weights.csv")
+    mapping = {"k0": {"jawOpen": 1.0}, "k1": {"mouthSmileLeft": 0.5}}
+    (tmp_path / "take" / "map.json").write_text(json.dumps(mapping))
+    gaze = np.column_stack([np.linspace(0, 0.8, n), np.linspace(0.6, 0.1, n)])
+    targets = Weights(np.column_stack([keys.values[:, 0], 0.5 * keys.values[:, 1], gaze]),
+                      ("jawOpen", "mouthSmileLeft", "eyeLookInLeft", "eyeLookUpRight"), fps=30.0)
+    head = Rotation.from_euler("yx", np.column_stack([np.linspace(0, 25, n), np.linspace(0, -10, n)]),
+                               degrees=True).as_matrix()
+    look = np.stack([Rotation.from_euler("y", np.linspace(-15, 15, n)[:, None], degrees=True).as_matrix(),
+                     Rotation.from_euler("x", np.linspace(10, -10, n)[:, None], degrees=True).as_matrix()], axis=1)
+    poses = Poses(head, np.zeros((n, 3)), np.ones(n))
+    export(targets, tmp_path / "take" / "animation.glb", source=RPM, poses=poses, eyes=look)
+    left, right = eye_nodes(RPM)
+    seen = _blender(tmp_path, IMPORT_ONTO, tmp_path / "take", RPM, "Wolf3D_Head", f"Head,{left},{right}",
+                    write_addon(tmp_path / "dist"), env=_install_env(tmp_path))
+    assert len(seen["values"]) == n
+    for name in ("eyeLookInLeft", "eyeLookUpRight", "jawOpen", "mouthSmileLeft"):
+        np.testing.assert_allclose([f[name] for f in seen["values"]], targets.values[:, targets.names.index(name)],
+                                   atol=1e-4, err_msg=name)
+    G, D = GLTF_TO_BLENDER, head_rotations(poses)
+    eyes = [D @ rotations_to_gltf(look[:, side]) for side in (0, 1)]
+    for name, turn in (("Head", D), (left, eyes[0]), (right, eyes[1])):
+        relative = np.einsum("fij,kj->fik", np.array(seen["turns"][name]), np.array(seen["rest"][name]))
+        np.testing.assert_allclose(relative, np.einsum("ij,fjk,lk->fil", G, turn, G), atol=2e-3, err_msg=name)
+    assert np.degrees(np.arccos((np.trace(relative[-1]) - 1) / 2)) > 10  # the eye did turn
+
+
+@needs_rpm
+def test_the_addon_reads_the_take_glb_as_keyshape_wrote_it(tmp_path):
+    """The add-on's numpy glb reader (no bpy): the head's turn D, each eye's E (relative to the head, as
+    `anim.turn` keys it), the morph weights, as keyshape wrote them onto the avatar."""
+    from scipy.spatial.transform import Rotation
+
+    from keyshape.io import blender
+    from keyshape.io.gltf import eye_nodes
+    from keyshape.schemes import rotations_to_gltf
+
+    sys.path.insert(0, str(Path(blender.__file__).parent))
+    try:
+        from blender_addon import gltf
+    finally:
+        sys.path.pop(0)
+    n = 9
+    head = Rotation.from_euler("yz", np.column_stack([np.linspace(0, 30, n), np.linspace(5, -5, n)]),
+                               degrees=True).as_matrix()
+    look = np.stack([Rotation.from_euler("y", np.linspace(-12, 12, n)[:, None], degrees=True).as_matrix(),
+                     Rotation.from_euler("x", np.linspace(8, -8, n)[:, None], degrees=True).as_matrix()], axis=1)
+    poses = Poses(head, np.zeros((n, 3)), np.ones(n))
+    targets = Weights(np.random.default_rng(1).random((n, 2)), ("jawOpen", "eyeLookInLeft"), fps=25.0)
+    export(targets, tmp_path / "animation.glb", source=RPM, poses=poses, eyes=look)
+    seen = gltf.read_animation(tmp_path / "animation.glb", 25.0, n)
+    left, right = eye_nodes(RPM)
+    assert set(seen.turns) == {"Head", left, right}
+    np.testing.assert_allclose(seen.turns["Head"], head_rotations(poses), atol=1e-6)
+    np.testing.assert_allclose(seen.turns[left], rotations_to_gltf(look[:, 0]), atol=1e-6)
+    np.testing.assert_allclose(seen.turns[right], rotations_to_gltf(look[:, 1]), atol=1e-6)
+    for k, name in enumerate(targets.names):
+        np.testing.assert_allclose(seen.weights[name], targets.values[:, k], atol=1e-6)

@@ -7,6 +7,7 @@ import pytest
 from PIL import Image
 
 from keyshape.alignment import align
+from keyshape.containers import Weights
 from keyshape.exceptions import InputError
 from keyshape.report import fit_quality, plots
 
@@ -96,3 +97,41 @@ def test_contact_sheet_keys_from_another_take_show_their_shape(take, tmp_path):
     mine = grey(plots.contact_sheet(other, perf.track, images, tmp_path / "a.png", take=("x.mp4", "a.mp4")))
     none = grey(plots.contact_sheet(other, perf.track, images, tmp_path / "n.png", take="x.mp4"))
     assert none == 0 < mine  # only the tiles of take a.mp4 show video frames
+
+
+def test_weight_curves_colour_every_key_of_a_region_apart_and_explain_the_spans():
+    """Issue 36 item 9: a region of 13 keys (8 and 5 mirrors, as the demo's lower face) gets 13 line
+    colours; each panel's legend says what the grey, tinted and hatched spans are."""
+    from types import SimpleNamespace
+
+    from matplotlib.colors import to_hex
+
+    from keyshape.containers import KeyShapes
+
+    lower = [*(f"lower_0{i}" for i in range(8)), *(f"lower_0{i}_mirror" for i in (1, 2, 3, 4, 6))]
+    names = ("upper_00", "upper_01", *lower)
+    n, n_keys = 80, len(names)
+    rng = np.random.default_rng(0)
+    keys = KeyShapes(np.zeros((6, 2)), rng.normal(size=(n_keys, 6, 2)), names, list(range(n_keys)),
+                     ("upper", "upper", *["lower"] * len(lower)),
+                     {"upper": np.arange(3), "lower": np.arange(3, 6)}, neutral_frame=0)
+    values = rng.random((n, n_keys))
+    values[10:14] = np.nan
+    weights = Weights(values, names, fps=25.0)
+    outside = {"upper": np.zeros(n, bool), "lower": np.arange(n) % 20 == 3}
+    fit = SimpleNamespace(error={r: rng.random(n) for r in ("upper", "lower")},
+                          excess={r: rng.random(n) for r in ("upper", "lower")},
+                          outside=outside, unit="% inter-ocular", tolerance=0.5)
+    hidden = {"lower": (np.arange(n) >= 40) & (np.arange(n) < 55)}
+    figure = plots._weight_figure(weights, keys, fit, hidden)
+    upper_ax, lower_ax, _ = figure.axes
+    for ax, members in ((upper_ax, names[:2]), (lower_ax, lower)):
+        lines = {line.get_label(): line for line in ax.get_lines() if not line.get_label().startswith("_")}
+        assert list(lines) == list(members)
+        assert len({to_hex(line.get_color()) for line in lines.values()}) == len(members)
+        assert all((line.get_linestyle() == "--") == name.endswith("_mirror") for name, line in lines.items())
+    legend = [t.get_text() for t in lower_ax.get_legend().get_texts()]
+    assert legend == [*lower, "no face", "outside the key-shape hull", "lower hidden: weights bridged"]
+    hatched = [h for h in lower_ax.get_legend().legend_handles if getattr(h, "get_hatch", lambda: None)() == "//"]
+    assert len(hatched) == 1
+    assert [t.get_text() for t in upper_ax.get_legend().get_texts()] == [*names[:2], "no face"]

@@ -380,7 +380,8 @@ def test_found_correspondence_proposes_nearly_the_built_targets(head, mediapipe_
 
 
 def test_score_route_uses_the_trackers_scores_at_the_keys():
-    """With ARKit scores at the key frames, a key's gains are its scores minus the neutral's, on its region."""
+    """With ARKit scores at the key frames, a key's gains are its scores minus the neutral's where they rise
+    (gains >= 0, as every mapping's: a key with less smile than the neutral leaves the smile at the offset)."""
     rig, keys, corr, _ = planted(n_targets=4, n_keys=2)
     rig = Rig(rig.vertices, rig.faces, rig.deltas, ("mouthSmile_L", "mouthSmile_R", "jawOpen", "eyeLookUp_L"))
     names = ("_neutral", "mouthSmileLeft", "mouthSmileRight", "jawOpen", "eyeLookUpLeft", "browInnerUp")
@@ -388,9 +389,9 @@ def test_score_route_uses_the_trackers_scores_at_the_keys():
                        np.array([[0.0, 0.9, 0.8, 0.1, 0.0, 0.0], [0.0, 0.2, 0.1, 0.7, 0.9, 0.9]]), names)
     mapping = propose_mapping(keys, rig, correspondence=corr, scores=scores)
     np.testing.assert_allclose(mapping.offset, [0.6, 0.5, 0.0, 0.0])  # gaze excluded by default
-    np.testing.assert_allclose(mapping.matrix, [[0.3, -0.4], [0.3, -0.4], [0.1, 0.7], [0.0, 0.0]])
+    np.testing.assert_allclose(mapping.matrix, [[0.3, 0.0], [0.3, 0.0], [0.1, 0.7], [0.0, 0.0]])
     frames = Weights(np.array([[0.0, 0.0], [0.0, 1.0]]), keys.names, 30.0)
-    np.testing.assert_allclose(retarget(frames, mapping).values, [[0.6, 0.5, 0.0, 0.0], [0.2, 0.1, 0.7, 0.0]])
+    np.testing.assert_allclose(retarget(frames, mapping).values, [[0.6, 0.5, 0.0, 0.0], [0.6, 0.5, 0.7, 0.0]])
     geometric = propose_mapping(keys, rig, correspondence=corr)  # no scores: the landmark fit, no offset
     assert not geometric.offset.any() and (geometric.matrix >= 0).all()
     auto = auto_targets(keys, rig, correspondence=corr, route="mapping", scores=scores)

@@ -67,14 +67,17 @@ def test_fit_through_keys_recovers_a_constant_and_gains():
     rng = np.random.default_rng(2)
     weights = rng.uniform(0, 1, (200, 5))
     offset = np.array([0.1, 0.0, 0.3])
-    gains = rng.uniform(-0.05, 0.6, (3, 5))
+    gains = np.maximum(rng.uniform(-0.05, 0.6, (3, 5)), 0.0)
     refined = offset + weights @ gains.T
     refined[10] = np.nan  # a frame without a face is left out
     weights[20, 2] = np.nan  # NaN key weights read as 0, as retarget reads them
     refined[20] = offset + np.nan_to_num(weights[20]) @ gains.T
     found_offset, found_gains = fit_through_keys(refined, weights, ridge=1e-9)
     np.testing.assert_allclose(found_offset, offset, atol=1e-5)
-    np.testing.assert_allclose(found_gains, np.maximum(gains, -offset[:, None]), atol=1e-5)
+    np.testing.assert_allclose(found_gains, gains, atol=1e-5)
+    falling = 0.6 - np.nan_to_num(weights) @ np.full((5, 3), 0.1)  # (200, 3) readings that fall with every key
+    _, found_gains = fit_through_keys(falling, weights)
+    assert (found_gains >= 0).all()  # a mapping's gains are >= 0 (`retarget --help`)
 
 
 def test_fit_in_landmarks_recovers_the_rows_from_every_frame_at_once():

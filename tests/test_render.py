@@ -303,3 +303,63 @@ def test_preview_verb(take_dir, tmp_path):
     frames, _, count = decode(out)
     assert count == len(frames) == 48
     assert main(["preview", str(tmp_path / "nowhere"), "-q"]) == 1
+
+
+# --------------------------------------------------------------------------- the weight strip's labels
+
+DEMO_KEYS = (*(f"upper_0{i}" for i in range(8)), "upper_03_mirror", "upper_07_mirror",
+             *(f"lower_0{i}" for i in range(8)), *(f"lower_0{i}_mirror" for i in (1, 2, 3, 4, 6)))
+
+
+def _check_labels_apart(strip, picture):
+    """Every label inside its own cell, no two boxes touching, and no ink across a cell's edge."""
+    from keyshape.render.draw import STRIP_BACKGROUND
+
+    labelled = range(0, len(strip.names) - strip.stride + 1, strip.stride)
+    assert [t for t, _ in strip.labels[: len(labelled)]] == [strip.short[i] for i in labelled]
+    for (text, (x0, _, x1, _)), i in zip(strip.labels, labelled):
+        assert i * strip.cell <= x0 and x1 <= (i + strip.stride) * strip.cell <= strip.width, (text, i, x0, x1)
+    boxes = [box for _, box in strip.labels]
+    for a in range(len(boxes)):
+        for b in range(a + 1, len(boxes)):
+            (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = boxes[a], boxes[b]
+            assert ax1 <= bx0 or bx1 <= ax0 or ay1 <= by0 or by1 <= ay0, (strip.labels[a], strip.labels[b])
+    band = picture[strip.bar_bottom + 1: strip.bar_bottom + strip.font_size + 5]  # the row of bar labels
+    inked = np.abs(band.astype(int) - STRIP_BACKGROUND).max(axis=-1) > 40
+    for i in range(strip.stride, len(strip.names), strip.stride):
+        x = int(i * strip.cell)
+        assert not inked[:, x].any(), (i, strip.names[i])
+
+
+def test_the_weight_strip_labels_are_distinct_and_apart():
+    """Issue 36 item 8: the demo's 23 keys across the 1000-pixel preview: each bar's label (upper_03_mirror
+    is "03m", under the "upper" region name) stays in its cell, none runs into the next, all distinct."""
+    from keyshape.render.draw import WeightStrip
+
+    regions = tuple(n.split("_")[0] for n in DEMO_KEYS)
+    strip = WeightStrip(DEMO_KEYS, np.full((len(DEMO_KEYS), 3), 200, np.uint8), 1000, 96, regions=regions)
+    picture = strip.draw(np.linspace(0, 1, len(DEMO_KEYS)))
+    assert strip.stride == 1 and strip.font_size >= 10  # every bar labelled, readably
+    texts = [t for t, _ in strip.labels]
+    numbers = ["00", "01", "02", "03", "04", "05", "06", "07"]
+    assert texts[: len(DEMO_KEYS)] == [*numbers, "03m", "07m", *numbers, "01m", "02m", "03m", "04m", "06m"]
+    assert texts[len(DEMO_KEYS):] == ["upper  (m: mirrored)", "lower  (m: mirrored)"]
+    # a label with its region is one key: (region under it, label) are distinct
+    assert strip.groups == [("upper", 0, 10), ("lower", 10, 23)]
+    (_, upper), (_, lower) = strip.labels[len(DEMO_KEYS):]
+    assert upper[2] <= 10 * strip.cell <= lower[0]  # each region's name under its own keys
+    named = [(strip.groups[0][0] if (box[0] + box[2]) / 2 < 10 * strip.cell else strip.groups[1][0], t)
+             for t, box in strip.labels[: len(DEMO_KEYS)]]
+    assert len(set(named)) == len(DEMO_KEYS)
+    _check_labels_apart(strip, picture)
+
+
+def test_a_crowded_strip_labels_every_kth_bar_apart():
+    """52 rig names, none a key, in 640 pixels: whole names, as many as fit, none running into another."""
+    from keyshape.render.draw import WeightStrip
+
+    names = tuple(f"mouthStretch{i:02d}" for i in range(52))
+    strip = WeightStrip(names, np.full((52, 3), 200, np.uint8), 640, 96)
+    picture = strip.draw(np.zeros(52))
+    assert strip.stride > 1 and all(t in names for t, _ in strip.labels)
+    _check_labels_apart(strip, picture)

@@ -238,3 +238,89 @@ def test_report_states_the_correspondence_quality(tmp_path):
     assert "3 of 478 landmarks on its surface" in result.report.read_text(encoding="utf-8")
     given = Correspondence.from_vertex_ids([4, 5, 6])
     assert given.quality() is None and "quality" not in given.to_dict()
+
+
+def _open_report(browser, path: Path) -> dict:
+    """``report.html`` opened from disk in Chromium: what the reader sees of the preview."""
+    page = browser.new_page()
+    errors = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(path.as_uri())
+    page.wait_for_function("(() => { const v = document.getElementById('preview');"
+                           " return v.error !== null || v.readyState >= 1; })()", timeout=20_000)
+    page.wait_for_timeout(200)
+    seen = page.evaluate("""() => {
+      const video = document.getElementById('preview'), note = document.getElementById('preview-missing');
+      return {playerShown: !video.hidden && video.getBoundingClientRect().height > 0,
+              duration: video.duration || 0,
+              noteShown: !!note && !note.hidden && note.getBoundingClientRect().height > 0,
+              note: note ? note.innerText : null};
+    }""")
+    page.close()
+    assert errors == []
+    return seen
+
+
+@pytest.mark.browser
+def test_report_opened_without_its_preview_says_so(extras, browser, tmp_path):
+    """Issue 36 item 10: report.html opened on its own tells the reader where the video went and what
+    to do (no empty player); beside preview.mp4 it plays it; `report --embed-video` carries it."""
+    import shutil
+
+    from keyshape.cli import main
+
+    copy = Path(shutil.copytree(extras[0], tmp_path / "take"))
+    assert main(["report", str(copy), "--no-preview", "-q"]) == 0  # the preview.mp4 already there, linked
+    beside = _open_report(browser, copy / "report.html")
+    assert beside["playerShown"] and beside["duration"] == pytest.approx(40 / 25, abs=0.1)
+    assert not beside["noteShown"]
+
+    alone = tmp_path / "mailed" / "report.html"
+    alone.parent.mkdir()
+    shutil.copy(copy / "report.html", alone)
+    seen = _open_report(browser, alone)
+    assert seen["noteShown"] and not seen["playerShown"]
+    assert seen["note"] == ("The preview video is not here. This page plays preview.mp4 from its own folder, and "
+                            "there is no preview.mp4 beside it: open the report in the take's output folder, copy "
+                            "preview.mp4 next to it, or write a report that carries the video: "
+                            "keyshape report FOLDER --embed-video.")
+
+    assert main(["report", str(copy), "--no-preview", "--embed-video", "-q"]) == 0
+    shutil.copy(copy / "report.html", alone)
+    embedded = _open_report(browser, alone)
+    assert embedded["note"] is None and embedded["playerShown"]
+    assert embedded["duration"] == pytest.approx(40 / 25, abs=0.1)
+
+
+def test_report_on_a_mapped_rig_shows_the_map_and_the_rigs_curves(tmp_path):
+    """Issue 36 item 11: with a map.json (an ARKit rig driven through the map), the report heads its keys
+    as what the map turns into the rig's shapes, not "the sculpt list", lists each key's targets with their
+    gains, and plots the rig's own curves (jawOpen, mouthSmile_L, ...) from animation.glb."""
+    from keyshape.containers import Rig
+    from keyshape.io.gltf import write_glb
+    from keyshape.io.keys_json import load_keys
+    from keyshape.io.weights_csv import load_weights_csv
+    from keyshape.targets import Mapping, retarget
+
+    folder = make_take_folder(tmp_path / "take", n_frames=30, n_missing=0)
+    keys, weights = load_keys(folder / "keys.json"), load_weights_csv(folder / "weights.csv")
+    targets = ("jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp")
+    gains = {keys.names[0]: {"browInnerUp": 0.8}, keys.names[-1]: {"jawOpen": 0.9, "mouthSmile_L": 0.3}}
+    mapping = Mapping.from_dict(gains, targets=targets, sources=keys.names)
+    mapping.save(folder / "map.json")
+    rig = Rig(np.eye(3), [[0, 1, 2]], np.full((4, 3, 3), 0.01), targets)
+    write_glb(folder / "animation.glb", rig, retarget(weights, mapping))
+    result = write_take_extras(folder, progress=False, preview=False)
+    text = result.report.read_text(encoding="utf-8")
+    assert "the sculpt list" not in text
+    assert "<h2>Key shapes: what map.json turns into the rig&#x27;s own shapes</h2>" in text
+    row = re.search(rf'<tr data-key="{keys.names[-1]}">(.*?)</tr>', text).group(1)
+    assert row == f"<td>{keys.names[-1]}</td><td>jawOpen ×0.90, mouthSmile_L ×0.30</td>"
+    assert re.search(rf'<tr data-key="{keys.names[1]}">(.*?)</tr>', text).group(1).endswith("<td><i>none</i></td>")
+    assert "<h2>The rig&#x27;s own shapes over time (animation.glb)</h2>" in text
+    assert len(re.findall(r'<img[^>]+src="data:image/png;base64,', text)) == 3  # sheet, weights, rig curves
+    assert not (folder / "rig.png").exists()  # in the page only: the take folder's files stay as they were
+
+    plain = make_take_folder(tmp_path / "plain", n_frames=30, n_missing=0)  # keys drive targets of their names
+    text = write_take_extras(plain, progress=False, preview=False).report.read_text(encoding="utf-8")
+    assert "Key shapes: the sculpt list" in text and 'id="map"' not in text

@@ -8,7 +8,7 @@ from keyshape.targets import KeyScores
 from keyshape.targets._propose import _take_mapping
 
 
-def _setup(seed=0, n_frames=400, noise=0.08):
+def _setup(seed=0, n_frames=400, noise=0.08, low=0.0):
     rng = np.random.default_rng(seed)
     n_keys, n_targets = 4, 6
     keys = KeyShapes(np.zeros((3, 2)), np.ones((n_keys, 3, 2)), ("upper_00", "upper_01", "lower_00", "lower_01"),
@@ -16,7 +16,7 @@ def _setup(seed=0, n_frames=400, noise=0.08):
     names = tuple(f"t{i}" for i in range(n_targets))
     rig = Rig(np.zeros((3, 3)), [[0, 1, 2]], np.zeros((n_targets, 3, 3)), names)
     own = np.array([[1, 1, 0, 0]] * 3 + [[0, 0, 1, 1]] * 3, dtype=bool)  # targets 0-2 upper, 3-5 lower
-    gains = rng.uniform(-0.1, 0.35, (n_targets, n_keys)) * own  # readings stay within [0, 1]
+    gains = np.maximum(rng.uniform(-0.1, 0.35, (n_targets, n_keys)), low) * own  # readings stay in [0, 1]
     offset = rng.uniform(0.2, 0.4, n_targets)
     weights = rng.uniform(0, 1, (n_frames, n_keys)) * (rng.uniform(size=(n_frames, n_keys)) < 0.4)
     truth = offset + weights @ gains.T
@@ -104,3 +104,20 @@ def test_gaze_entries_are_checked(tmp_path):
                                "gaze": {"eyeLookIn_L": {"score": "eyeLookInLeft", "rest": 1.5}}}))
     with pytest.raises(InputError, match=r"map\.json: .*rest must be in \[0, 1\]"):
         Mapping.from_file(bad, targets=("jawOpen", "eyeLookIn_L"))
+
+
+def test_the_fitted_gains_are_never_negative_nor_negligible():
+    """Issue 36 item 11: map.json's gains are >= 0, as `retarget --help` says, even where the take's
+    readings fall with a key (the fit was unbounded below zero, 165 of 522 gains negative on an RPM
+    run), and none is left in (0, 1e-3): such a gain moves nothing."""
+    from keyshape.targets._mapping import SMALLEST_GAIN
+
+    keys, rig, own, gains, _, weights, truth, scores = _setup(seed=3, low=-1.0)  # readings fall with some keys
+    assert (gains < -0.02).sum() >= 3
+    bundle = KeyScores(np.zeros(6), np.zeros((4, 6)), rig.names, take=scores, weights=weights)
+    mapping = _take_mapping(keys, rig, np.eye(6), own, bundle, np.zeros(6))
+    assert (mapping.matrix >= 0).all() and not ((mapping.matrix > 0) & (mapping.matrix < SMALLEST_GAIN)).any()
+    assert (mapping.matrix[gains > 0.05] > 0).all()  # what a key does raise, it still raises
+    fitted = mapping.offset + weights @ mapping.matrix.T
+    best_constant = np.abs(scores - scores.mean(axis=0)).mean()
+    assert np.abs(fitted - truth).mean() < 0.7 * best_constant  # and the fit still explains the take

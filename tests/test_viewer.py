@@ -401,3 +401,41 @@ def test_viewer_without_the_video(browser, tmp_path):
         _check_frame(page, 6, names, csv, None)
         assert csv[6].max() == 0  # a NaN row
         page.close()
+
+
+# every row of the weights panel: its heading, the name shown, whether the label is cut, its box
+_PANEL_ROWS = """() => {
+  let heading = null;
+  const rows = [];
+  for (const item of document.querySelectorAll('#weights > li')) {
+    if (item.classList.contains('region')) { heading = item.textContent; continue; }
+    const label = item.querySelector('.name'), bar = item.querySelector('.bar').getBoundingClientRect();
+    const box = label.getBoundingClientRect();
+    rows.push({heading, name: item.dataset.name, shown: label.innerText, cut: label.scrollWidth > label.clientWidth,
+               right: box.right, barLeft: bar.left, visible: box.width > 0 && box.height > 0});
+  }
+  return {rows, headings: [...document.querySelectorAll('#weights > li.region')].map((h) => h.textContent)};
+}"""
+
+
+def test_viewer_weights_panel_names_whole_and_grouped_by_region(browser, demo_take):
+    """Issue 36 item 7: every name shown whole (eyeSquintLeft/Right, lower_00_mirror tell apart), a
+    heading per region only (upper, lower, gaze: no heading named like a mirrored key), each mirrored
+    key under its original's region, the eyeLook* rows under gaze."""
+    from keyshape.targets import GAZE_NAMES
+
+    keys = json.loads((demo_take / "keys.json").read_text())["regions"]
+    region_of = {key["name"]: region for region, entry in keys.items() for key in entry["keys"]}
+    with _Served(demo_take) as server:
+        page = _open(browser, server.url)
+        seen = page.evaluate(_PANEL_ROWS)
+        page.close()
+    assert seen["headings"] == ["upper", "lower", "gaze"]
+    rows = seen["rows"]
+    assert [r["name"] for r in rows] == [*region_of, *GAZE_NAMES]
+    for row in rows:
+        assert row["visible"] and row["shown"] == row["name"] and not row["cut"], row
+        assert row["right"] <= row["barLeft"], row  # the name ends before its bar begins
+        assert row["heading"] == region_of.get(row["name"], "gaze"), row
+    assert len({r["shown"] for r in rows}) == len(rows)
+    assert any(r["name"].endswith("_mirror") for r in rows)

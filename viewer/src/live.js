@@ -25,7 +25,8 @@ export async function runLive(take, hook, $, notice) {
   } catch (error) {
     notice(`WebGL is not available, so the character cannot be drawn (${error.message}); the weights still show.`);
   }
-  const panel = new WeightsPanel($('weights'), character.names, {}, () => {});
+  const panel = new WeightsPanel($('weights'), character.names,
+    { regions: take.key_regions, descriptions: take.key_descriptions }, () => {});
   const state = { frames: 0, images: 0, frame: -1, time: 0, face: false, open: false, closed: false };
 
   const socket = new WebSocket(`ws://${window.location.host}${take.socket}`);

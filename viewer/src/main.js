@@ -39,7 +39,8 @@ async function main() {
   const animationTime = (t) => (source && clock.kind === 'video' ? t - source[0] : t);
   const frameAt = (t) => nearestFrame(timeOf, lastFrame, t);
   const stage = openStage(character);
-  const panel = new WeightsPanel($('weights'), character.names, take.key_frames, (f) => seekFrame(f));
+  const panel = new WeightsPanel($('weights'), character.names,
+    { frames: take.key_frames, regions: take.key_regions, descriptions: take.key_descriptions }, (f) => seekFrame(f));
   const slider = $('scrub');
   slider.max = String(lastFrame);
 

@@ -13,7 +13,7 @@ import numpy as np
 from ..exceptions import MissingDependencyError
 
 __all__ = ["REGION_COLOURS", "OTHER_COLOUR", "region_palette", "landmark_colours", "resize_to_height",
-           "draw_landmarks", "draw_crosses", "caption", "WeightStrip", "HIDDEN_COLOUR"]
+           "draw_landmarks", "draw_crosses", "caption", "WeightStrip", "short_label", "HIDDEN_COLOUR"]
 
 # Okabe–Ito colours (distinguishable with colour-blindness), one per region in order.
 REGION_COLOURS = ((230, 159, 0), (86, 180, 233), (0, 158, 115), (240, 228, 66), (0, 114, 178),
@@ -170,9 +170,29 @@ def _text_patch(text: str, size: int) -> np.ndarray:
     return np.asarray(canvas)
 
 
+MIRROR_MARK = "m"  # a mirrored key's short label: "03m" is region_03_mirror
+
+
+def short_label(name: str, region: str | None) -> str:
+    """A key's label under its bar when its region is named below the bars: ``upper_03_mirror`` of
+    region ``upper`` is ``03m``; a name that does not start with its region's is kept whole.
+
+    >>> short_label("upper_03_mirror", "upper"), short_label("lower_00", "lower"), short_label("jawOpen", None)
+    ('03m', '00', 'jawOpen')
+    """
+    if not region or not name.startswith(f"{region}_"):
+        return name
+    rest = name[len(region) + 1:]
+    return f"{rest[:-len('_mirror')]}{MIRROR_MARK}" if rest.endswith("_mirror") else rest
+
+
 class WeightStrip:
     """A strip of vertical bars, one per weight, labelled and coloured by region.
 
+    Under the bars, a row of labels (one per bar, each inside its bar's cell: a key of a region
+    by its number, ``03``, a mirrored key ``03m``) and a row of region names, each centred under its
+    keys' span (with "(m: mirrored)" when it has mirrored keys). Labels never run into each other:
+    where the cells are too narrow even at the smallest font, only every k-th bar is labelled.
     The labels and frame are drawn once; :meth:`draw` only fills the bars.
 
     Parameters
@@ -180,29 +200,94 @@ class WeightStrip:
     names : tuple of n_channels str
     colours : (n_channels, 3) uint8
     width, height : int
+    regions : tuple of n_channels (str or None), optional
+        Each channel's region (None: not a key); default none, every name labelled whole.
+
+    Attributes
+    ----------
+    labels : list of (str, (x0, y0, x1, y1))
+        Every label drawn (per bar, then the region names) and its box in the strip's pixels.
     """
 
-    def __init__(self, names, colours: np.ndarray, width: int, height: int):
+    MIN_FONT, MAX_FONT = 7, 13
+
+    def __init__(self, names, colours: np.ndarray, width: int, height: int, regions=None):
         self.names = tuple(names)
         self.colours = np.asarray(colours, np.uint8)
         self.width, self.height = int(width), int(height)
+        self.regions = tuple(regions) if regions is not None else (None,) * len(self.names)
         self.cell = self.width / max(len(self.names), 1)
-        self.font_size = int(np.clip(self.cell / (0.62 * max((len(n) for n in self.names), default=1)), 7, 13))
-        self.bar_top, self.bar_bottom = 8, self.height - self.font_size - 10
+        self.short = [short_label(n, r) for n, r in zip(self.names, self.regions)]
+        self.groups = self._groups()
+        self.font_size, self.stride = self._fit()
+        rows = 2 if self.groups else 1
+        self.bar_top, self.bar_bottom = 8, self.height - rows * (self.font_size + 4) - 6
+        self.labels: list = []
         self.background = self._background()
+
+    def _groups(self) -> list:
+        """``[(region, first, stop)]``: runs of consecutive channels of one region (none without regions)."""
+        runs, first = [], 0
+        for i in range(1, len(self.names) + 1):
+            if i == len(self.names) or self.regions[i] != self.regions[first]:
+                if self.regions[first] is not None:
+                    runs.append((self.regions[first], first, i))
+                first = i
+        return runs
+
+    def _text_width(self, text: str, size: int) -> int:
+        image_mod, image_draw, _ = _pil()
+        left, _, right, _ = image_draw.Draw(image_mod.new("RGB", (1, 1))).textbbox((0, 0), text, font=_font(size))
+        return right - left
+
+    def _fit(self) -> tuple[int, int]:
+        """``(font size, k)``: the largest font whose labels fit their cells, labelling every k-th bar."""
+        longest = max(self.short, key=len, default="")
+        for stride in range(1, max(len(self.names), 1) + 1):
+            room = stride * self.cell - 4
+            for size in range(self.MAX_FONT, self.MIN_FONT - 1, -1):
+                if self._text_width(longest, size) <= room and max(
+                        (self._text_width(t, size) for t in self.short), default=0) <= room:
+                    return size, stride
+        return self.MIN_FONT, max(len(self.names), 1)
 
     def _background(self) -> np.ndarray:
         image_mod, image_draw, _ = _pil()
         canvas = image_mod.new("RGB", (self.width, self.height), STRIP_BACKGROUND)
         pen = image_draw.Draw(canvas)
         font = _font(self.font_size)
-        for i, name in enumerate(self.names):
+        label_base = self.bar_bottom + self.font_size + 4
+        for i in range(len(self.names)):
             x0, x1 = self._bar_span(i)
             pen.rectangle([x0, self.bar_top, x1 - 1, self.bar_bottom - 1], outline=(60, 62, 68))
-            centre = (x0 + x1) / 2
-            pen.text((centre, self.height - 4), name, fill=tuple(int(c) for c in self.colours[i]),
-                     font=font, anchor="ms")
+            if i % self.stride or i + self.stride > len(self.names):  # labelled bars' labels end in the strip
+                continue
+            colour = tuple(int(c) for c in self.colours[i])
+            if self.stride == 1:  # centred under its bar
+                self._text(pen, ((x0 + x1) / 2, label_base), self.short[i], colour, font)
+            else:  # from its bar's left edge over the k unlabelled cells beside it
+                self._text(pen, (i * self.cell + 2, label_base), self.short[i], colour, font, anchor="ls")
+        for region, first, stop in self.groups:
+            left, right = int(first * self.cell) + 2, int(stop * self.cell) - 2
+            mirrored = any(self.names[i].endswith("_mirror") for i in range(first, stop))
+            text = f"{region}  ({MIRROR_MARK}: mirrored)" if mirrored else region
+            if self._text_width(text, self.font_size) > right - left:
+                text = region
+            if self._text_width(text, self.font_size) > right - left:
+                continue
+            y = self.height - 4
+            pen.line([left, y - self.font_size // 2 - 1, right, y - self.font_size // 2 - 1], fill=(60, 62, 68))
+            width = self._text_width(text, self.font_size)
+            pen.rectangle([(left + right - width) / 2 - 3, y - self.font_size - 2, (left + right + width) / 2 + 3, y],
+                          fill=STRIP_BACKGROUND)
+            self._text(pen, ((left + right) / 2, y), text, tuple(int(c) for c in self.colours[first]), font)
         return np.asarray(canvas).copy()
+
+    def _text(self, pen, anchor_at, text: str, colour, font, anchor: str = "ms") -> None:
+        pen.text(anchor_at, text, fill=colour, font=font, anchor=anchor)
+        box = pen.textbbox(anchor_at, text, font=font, anchor=anchor)
+        x0, y0, x1, y1 = box
+        self.labels.append((text, (int(np.floor(x0)), int(np.floor(y0)), int(np.ceil(x1)), int(np.ceil(y1)))))
 
     def _bar_span(self, i: int) -> tuple[int, int]:
         pad = max(2, int(self.cell * 0.18))

@@ -91,7 +91,8 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     sources = _source_frames(video, track, height)
     first = next(sources)
     split, width = first.shape[1], first.shape[1] + height
-    strip = WeightStrip(weights.names, _channel_colours(weights.names, keys), width, _even(strip_height))
+    strip = WeightStrip(weights.names, _channel_colours(weights.names, keys), width, _even(strip_height),
+                        regions=_channel_regions(weights.names, keys))
     overlay = _LandmarkOverlay(track, keys, scale=first.shape[0] / source_height)
     canvas = np.zeros((height + strip.height, width, 3), np.uint8)
     with (
@@ -215,6 +216,12 @@ def _channel_colours(names, keys: KeyShapes | None) -> np.ndarray:
     palette = region_palette(keys.regions)
     region_of = dict(zip(keys.names, keys.key_regions))
     return np.array([palette.get(region_of.get(n), OTHER_COLOUR) for n in names], np.uint8)
+
+
+def _channel_regions(names, keys: KeyShapes | None) -> tuple:
+    """The region of each channel that is a key (None for the others, and for all without keys)."""
+    region_of = dict(zip(keys.names, keys.key_regions)) if keys is not None else {}
+    return tuple(region_of.get(n) for n in names)
 
 
 class _LandmarkOverlay:

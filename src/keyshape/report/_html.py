@@ -1,7 +1,8 @@
-"""The take report as one self-contained HTML page: :func:`write_report`.
+"""The take report as one HTML page: :func:`write_report`.
 
 Tables of the numbers (:func:`keyshape.report._fit.take_numbers`), the pictures embedded as
-base64 data URIs, the preview video linked or embedded, the key-shape list and how the
+base64 data URIs, the preview video linked beside it (the page says so when it is not there) or
+embedded, the key-shape list and how the
 numbers are defined; the numbers again as JSON in a ``<script>`` block for tools to read.
 """
 
@@ -29,12 +30,13 @@ h1{font-size:22px;margin:6px 0 2px} h2{font-size:17px;margin:26px 0 8px;border-b
 td,th{padding:3px 10px;border-bottom:1px solid #eee;text-align:left} th{background:#f5f5f7}
 td.n{text-align:right;font-variant-numeric:tabular-nums} img,video{max-width:100%;border:1px solid #ddd}
 .note{color:#555;font-size:13px} code{background:#f3f3f5;padding:0 3px}
+.missing{background:#fff4d6;border:1px solid #e6c36a;border-radius:4px;padding:10px 14px}
 """
 
 
 def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: dict[str, Path],
-                 video: str | None = None, notes: list[str] | None = None) -> Path:
-    """Write a self-contained HTML report, atomically.
+                 video: str | None = None, notes: list[str] | None = None, mapping: dict | None = None) -> Path:
+    """Write the HTML report (everything in it but a linked video), atomically.
 
     Parameters
     ----------
@@ -50,6 +52,9 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
         The preview video as a path relative to the report, or a ``data:`` URI.
     notes : list of str, optional, keyword-only
         Extra remarks (e.g. a missing source video), shown under the title.
+    mapping : dict, optional, keyword-only
+        ``{key: {target: gain}}``: the map that drives the rig's own shapes (``map.json``), shown
+        as a table under the key shapes.
 
     Returns
     -------
@@ -60,15 +65,17 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     parts += ["<h2>Numbers</h2>", _numbers_table(numbers), _regions_table(numbers), _neutral_note(numbers),
               _hidden_note(numbers)]
     if video:
-        parts += ["<h2>Preview</h2>",
-                  f'<video controls loop muted preload="metadata" src="{html.escape(video)}"></video>',
+        parts += ["<h2>Preview</h2>", _video(video),
                   ('<p class="note">Left: the source video with the tracked landmarks (one colour '
                    "per region). Right: the character driven by the same weights and head rotation. "
                    "Bottom: the current key-shape weights.</p>")]
     for caption_text, png in images.items():
         parts += [f"<h2>{html.escape(caption_text)}</h2>",
                   f'<img alt="{html.escape(caption_text)}" src="{data_uri(png, "image/png")}">']
-    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"], numbers.get("key_frames")), _definitions(numbers)]
+    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"], numbers.get("key_frames"))]
+    if mapping:
+        parts += ["<h2>The map: key shapes to the rig's shapes (map.json)</h2>", _map_table(keys, mapping)]
+    parts += [_definitions(numbers)]
     data = json.dumps(numbers).replace("</", "<\\/")
     document = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
                 f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>\n"
@@ -77,6 +84,30 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     with atomic_path(path) as tmp:
         tmp.write_text(document, encoding="utf-8")
     return Path(path)
+
+
+# shows the message (and hides the empty player) when the linked video cannot be loaded
+_MISSING_VIDEO_SCRIPT = """<script>(function () {
+  var video = document.getElementById('preview'), note = document.getElementById('preview-missing');
+  function missing() { video.hidden = true; note.hidden = false; }
+  if (video.error) missing();
+  video.addEventListener('error', missing);
+})();</script>"""
+
+
+def _video(video: str) -> str:
+    """The preview player: embedded (a ``data:`` URI), or linked beside the report with the message
+    a reader sees when the file is not there (the page opened on its own, copied or mailed)."""
+    player = f'<video id="preview" controls loop muted preload="metadata" src="{html.escape(video)}"></video>'
+    if video.startswith("data:"):
+        return player
+    name = html.escape(video)
+    return (player
+            + f'<p class="missing" id="preview-missing" hidden><b>The preview video is not here.</b> This page plays '
+              f"<code>{name}</code> from its own folder, and there is no <code>{name}</code> beside it: open "
+              f"the report in the take's output folder, copy <code>{name}</code> next to it, or write a report "
+              f"that carries the video: <code>keyshape report FOLDER --embed-video</code>.</p>"
+            + _MISSING_VIDEO_SCRIPT)
 
 
 def _subtitle(n: dict) -> str:
@@ -155,6 +186,20 @@ def _keys_table(keys: KeyShapes, fps: float, video_frames=None) -> str:
                    f"<td>{html.escape(keys.takes[k])}</td></tr>" for k in range(keys.n_keys))
     return ('<table id="keys"><tr><th>name</th><th>region</th><th>video frame</th><th>time</th><th>take</th></tr>'
             f"{rows}</table>")
+
+
+def _map_table(keys: KeyShapes, mapping: dict, shown: int = 6) -> str:
+    """One row per key: the rig's shapes it drives, strongest first (``shown`` of them), with their gains."""
+    rows = []
+    for name in [*keys.names, *(k for k in mapping if k not in keys.names)]:
+        drives = sorted(((g, t) for t, g in mapping.get(name, {}).items() if g > 0), reverse=True)
+        terms = ", ".join(f"{html.escape(t)} ×{g:.2f}" for g, t in drives[:shown])
+        if len(drives) > shown:
+            terms += f", … ({len(drives) - shown} more)"
+        rows.append(f'<tr data-key="{html.escape(name)}"><td>{html.escape(name)}</td>'
+                    f"<td>{terms or '<i>none</i>'}</td></tr>")
+    return ('<table id="map"><tr><th>key shape</th><th>drives the rig\'s shapes (gain: the shape\'s weight at '
+            f"the key's full weight)</th></tr>{''.join(rows)}</table>")
 
 
 def _definitions(n: dict) -> str:

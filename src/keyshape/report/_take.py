@@ -15,6 +15,7 @@ re-exported here.
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,9 +92,13 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
         movie = outdir / "preview.mp4"  # from an earlier run
     if preview and movie is None:
         notes.append(f"No preview: {take.info['files'].get('animation', 'animation.glb')} is missing.")
-    report = write_report(outdir / "report.html", numbers, take.keys, title=f"keyshape · {take.name}",
-                          images={_CAPTIONS[k]: p for k, p in pictures.items()},
-                          video=_video_source(movie, embed_video), notes=notes)
+    gains = _map_gains(outdir / "map.json")
+    captions = {**_CAPTIONS, "keyshapes": _MAPPED_KEYS_CAPTION} if gains else _CAPTIONS
+    with tempfile.TemporaryDirectory(prefix="keyshape-report-") as work:
+        curves = _rig_curves(outdir, take, Path(work)) if gains else None
+        images = {captions[k]: p for k, p in {**pictures, **({"rig": curves} if curves else {})}.items()}
+        report = write_report(outdir / "report.html", numbers, take.keys, title=f"keyshape · {take.name}",
+                              images=images, video=_video_source(movie, embed_video), notes=notes, mapping=gains)
     return TakeExtras(report, movie, pictures, numbers)
 
 
@@ -138,7 +143,39 @@ def _video_source(movie: Path | None, embed: bool) -> str | None:
 
 
 _CAPTIONS = {"keyshapes": "Key shapes: the sculpt list", "weights": "Weights over time and fit error",
-             "error_vs_k": "Error against the number of key shapes"}
+             "error_vs_k": "Error against the number of key shapes",
+             "rig": "The rig's own shapes over time (animation.glb)"}
+_MAPPED_KEYS_CAPTION = "Key shapes: what map.json turns into the rig's own shapes"
+
+
+def _map_gains(path: Path) -> dict | None:
+    """``{key: {target: gain}}`` of the ``map.json`` beside the take (wrapped or plain); None without one."""
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    gains = data.get("gains") if isinstance(data, dict) and "gains" in data else data
+    if not isinstance(gains, dict) or not all(isinstance(v, dict) for v in gains.values()):
+        return None
+    return {str(k): {str(t): float(g) for t, g in v.items()} for k, v in gains.items()}
+
+
+def _rig_curves(outdir: Path, take: _Take, folder: Path) -> Path | None:
+    """The picture of the rig's own target weights over time, from ``animation.glb`` (None when it
+    names the keys themselves: the built-in character, shown by the weights plot already)."""
+    from ..io.gltf import read_glb_animation
+    from . import plots
+
+    path = outdir / take.info.get("files", {}).get("animation", "animation.glb")
+    if not path.is_file():
+        return None
+    animation = read_glb_animation(path)
+    if set(animation.names) <= set(take.keys.names) | {n for n in animation.names if n.startswith("eyeLook")}:
+        return None
+    rig = Weights(np.asarray(animation.weights, dtype=float), tuple(animation.names), take.weights.fps)
+    return plots.rig_curves(rig, folder / "rig.png")
 
 
 @dataclass(frozen=True)

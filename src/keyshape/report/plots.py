@@ -21,7 +21,7 @@ from ..render.draw import OTHER_COLOUR, region_palette
 if TYPE_CHECKING:
     from ._take import FitQuality
 
-__all__ = ["contact_sheet", "weight_curves", "error_vs_k"]
+__all__ = ["contact_sheet", "weight_curves", "rig_curves", "error_vs_k"]
 
 _GAP_COLOUR = "#9a9a9a"
 _KEY_COLOURS = ("#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666",
@@ -160,7 +160,8 @@ def weight_curves(weights: Weights, keys: KeyShapes, fit: FitQuality, path, *,
     Frames without a face are shaded grey; frames outside a region's key-shape hull
     (``fit.outside``, see :func:`keyshape.report._take.fit_quality`) are shaded in the region's colour;
     frames where the region is hidden (``hidden[region]``, (n_frames,) bool: a hand over the mouth)
-    are hatched.
+    are hatched. Each key of a region has a colour of its own (a mirrored key's line dashed); each
+    panel's legend names its keys, then what its shaded and hatched spans mean.
 
     Parameters
     ----------
@@ -177,6 +178,11 @@ def weight_curves(weights: Weights, keys: KeyShapes, fit: FitQuality, path, *,
     -------
     Path
     """
+    return _save(_weight_figure(weights, keys, fit, hidden), path)
+
+
+def _weight_figure(weights: Weights, keys: KeyShapes, fit: FitQuality, hidden):
+    """The figure :func:`weight_curves` saves."""
     regions = list(keys.regions)
     times = weights.times
     figure = _figure(12, 2.0 * len(regions) + 2.6)
@@ -186,28 +192,66 @@ def weight_curves(weights: Weights, keys: KeyShapes, fit: FitQuality, path, *,
     gaps = ~np.isfinite(weights.values).all(axis=1)
     for ax, region in zip(axes, regions):
         _region_panel(ax, weights, keys, region, palette[region])
-        _shade(ax, times, gaps, _GAP_COLOUR, 0.35)
-        _shade(ax, times, fit.outside[region], _rgb(palette[region]), 0.18)
+        spans = []
+        if gaps.any():
+            _shade(ax, times, gaps, _GAP_COLOUR, 0.35)
+            spans.append(_patch(facecolor=_GAP_COLOUR, alpha=0.35, label="no face"))
+        if np.any(fit.outside[region]):
+            _shade(ax, times, fit.outside[region], _rgb(palette[region]), 0.18)
+            spans.append(_patch(facecolor=_rgb(palette[region]), alpha=0.18, label="outside the key-shape hull"))
         if hidden is not None and np.any(hidden.get(region, False)):
             _hatch(ax, times, np.asarray(hidden[region], dtype=bool))
+            spans.append(_patch(facecolor="none", edgecolor="0.35", hatch="//", lw=0.0,
+                                label=f"{region} hidden: weights bridged"))
+        _legend(ax, spans)
     _error_panel(axes[-1], times, fit, palette)
     _shade(axes[-1], times, gaps, _GAP_COLOUR, 0.35)
     axes[-1].set_xlabel("time (s)")
     axes[-1].set_xlim(times[0] if len(times) else 0, times[-1] if len(times) > 1 else 1)
-    return _save(figure, path)
+    return figure
+
+
+def key_colours(n: int) -> list[str]:
+    """``n`` line colours, all different for ``n`` up to 52 (then they repeat): :data:`_KEY_COLOURS`, then
+    the tab20b and tab20c colours.
+
+    >>> len(set(key_colours(40)))
+    40
+    """
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    extra = [to_hex(c) for name in ("tab20b", "tab20c") for c in colormaps[name].colors]
+    colours = list(dict.fromkeys([*_KEY_COLOURS, *extra]))
+    return [colours[i % len(colours)] for i in range(n)]
+
+
+def _patch(**style):
+    from matplotlib.patches import Patch
+
+    return Patch(**style)
+
+
+def _legend(ax, spans: list) -> None:
+    """The panel's legend: its keys' lines, then what its shaded and hatched spans mean."""
+    lines, labels = ax.get_legend_handles_labels()
+    handles = [*lines, *spans]
+    if handles:
+        ax.legend(handles=handles, labels=[*labels, *(s.get_label() for s in spans)], loc="upper left",
+                  bbox_to_anchor=(1.0, 1.0), fontsize=7, frameon=False)
 
 
 def _region_panel(ax, weights: Weights, keys: KeyShapes, region: str, colour) -> None:
+    """One line per key of ``region``, each its own colour; a mirrored key dashed."""
     members = [weights.names.index(keys.names[k]) for k in keys.keys_of(region)
                if keys.names[k] in weights.names]
-    for i, channel in enumerate(members):
-        ax.plot(weights.times, weights.values[:, channel], lw=1.0, color=_KEY_COLOURS[i % len(_KEY_COLOURS)],
-                label=weights.names[channel])
+    for channel, line_colour in zip(members, key_colours(len(members))):
+        name = weights.names[channel]
+        ax.plot(weights.times, weights.values[:, channel], lw=1.0, color=line_colour, label=name,
+                ls="--" if name.endswith("_mirror") else "-")
     ax.set_ylabel(f"{region}\nweight", color=_rgb(colour))
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.25)
-    if members:
-        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=7, frameon=False)
 
 
 def _error_panel(ax, times: np.ndarray, fit: FitQuality, palette) -> None:
@@ -228,9 +272,8 @@ def _error_panel(ax, times: np.ndarray, fit: FitQuality, palette) -> None:
 def _hatch(ax, times: np.ndarray, mask: np.ndarray) -> None:
     """Hatch the runs of ``mask`` (a hidden region: its weights are the smoothness term's bridge)."""
     edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
-    for i, (start, stop) in enumerate(zip(edges[::2], edges[1::2])):
-        ax.axvspan(times[start], times[stop - 1], facecolor="none", edgecolor="0.35", hatch="//", lw=0.0,
-                   label="hidden" if i == 0 else None)
+    for start, stop in zip(edges[::2], edges[1::2]):
+        ax.axvspan(times[start], times[stop - 1], facecolor="none", edgecolor="0.35", hatch="//", lw=0.0)
 
 
 def _shade(ax, times: np.ndarray, mask: np.ndarray, colour, alpha: float) -> None:
@@ -252,6 +295,31 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """
     edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
     return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def rig_curves(weights: Weights, path, *, shown: int = 12) -> Path:
+    """The rig's own target weights over time (``jawOpen``, ``mouthSmile_L``, ...): the ``shown``
+    most active (largest range over the take), each its own colour, named in the legend.
+
+    ``weights``: ``values (n_frames, n_targets)`` named by the rig's targets.
+    """
+    values = np.nan_to_num(np.asarray(weights.values, dtype=float))
+    spread = values.max(axis=0) - values.min(axis=0) if len(values) else np.zeros(len(weights.names))
+    order = [int(t) for t in np.argsort(-spread, kind="stable")[:shown] if spread[t] > 0]
+    figure = _figure(12, 3.2)
+    ax = figure.subplots()
+    for t, colour in zip(order, key_colours(len(order))):
+        ax.plot(weights.times, values[:, t], lw=1.0, color=colour, label=weights.names[t])
+    ax.set_ylabel("rig shape\nweight")
+    ax.set_xlabel("time (s)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.25)
+    rest = len(weights.names) - len(order)
+    ax.set_title(f"the {len(order)} most active of the rig's {len(weights.names)} shapes"
+                 + (f" ({rest} move less or not at all)" if rest else ""), fontsize=9, loc="left")
+    if order:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=7, frameon=False)
+    return _save(figure, path)
 
 
 # --------------------------------------------------------------------------- error vs K

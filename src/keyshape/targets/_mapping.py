@@ -447,3 +447,24 @@ def retarget(weights: Weights, mapping: Mapping) -> Weights:
     if mapping.offset.any():
         values = np.maximum(values + mapping.offset, 0.0)
     return weights.with_values(values, mapping.targets)
+
+
+SMALLEST_GAIN = 1e-3  # a gain below this moves a target by less than 0.001 at full weight: none at all
+
+
+def bounded_row(X: np.ndarray, y: np.ndarray, ridge: float) -> tuple[float, np.ndarray]:
+    """``(c, g)`` minimising ``|X [c, g] - y|² + ridge n |g|²`` with ``0 <= c <= 1``, ``g >= 0``: one
+    mapping row (a target's offset and gains) fitted as every mapping's must be, by BVLS.
+
+    ``X (n, 1 + m)``: a column of ones, then the ``m`` key weights; ``y (n,)``.
+    """
+    from scipy.optimize import lsq_linear
+
+    n, m = X.shape[0], X.shape[1] - 1
+    if m == 0:
+        return float(np.clip(y.mean(), 0, 1)), np.zeros(0)
+    A = np.vstack([X, np.sqrt(ridge * n) * np.eye(1 + m)[1:]])
+    b = np.concatenate([y, np.zeros(m)])
+    lower, upper = np.zeros(1 + m), np.r_[1.0, np.full(m, np.inf)]
+    coef = lsq_linear(A, b, bounds=(lower, upper), method="bvls").x
+    return float(coef[0]), np.maximum(coef[1:], 0.0)

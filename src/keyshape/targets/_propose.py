@@ -45,7 +45,7 @@ from ._character import stylised_head
 from ._correspond import Correspondence, read_correspondence
 from ._correspond_auto import find_correspondence
 from ._head_parts import JAW_LANDMARKS, jaw_deltas
-from ._mapping import Mapping
+from ._mapping import SMALLEST_GAIN, Mapping, bounded_row
 from ._transfer import landmark_motion, spread, transfer_expressions
 
 __all__ = ["AutoTargets", "KeyScores", "auto_targets", "default_character", "gaze_channels", "propose_mapping",
@@ -335,7 +335,8 @@ def _score_channels(score_names, rig_names) -> np.ndarray:
 
 def _score_mapping(keys: KeyShapes, rig: Rig, corr: Correspondence, scores: KeyScores,
                    allowed: np.ndarray) -> Mapping:
-    """Gains ``s(key) − s(neutral)`` on the key's region's targets, offset ``s(neutral) − s(rest)``.
+    """Gains ``max(s(key) − s(neutral), 0)`` on the key's region's targets (below
+    :data:`SMALLEST_GAIN`: none), offset ``s(neutral) − s(rest)``.
 
     A target belongs to the region whose corresponded landmarks it moves most; targets no score
     names (or ``allowed`` excludes) stay undriven. ``s(rest)`` is how the tracker reads the
@@ -359,7 +360,8 @@ def _score_mapping(keys: KeyShapes, rig: Rig, corr: Correspondence, scores: KeyS
             return fitted
     at_keys = np.clip(np.nan_to_num(np.asarray(scores.keys, dtype=float)) @ table.T, 0, 1)  # (n_keys, n_targets)
     base = np.clip(table @ np.nan_to_num(np.asarray(scores.neutral, dtype=float)), 0, 1)
-    gains = np.where(own, np.maximum(at_keys.T - base[:, None], -neutral[:, None]), 0.0)
+    gains = np.where(own, np.maximum(at_keys.T - base[:, None], 0.0), 0.0)  # gains >= 0, as a map's are
+    gains[gains < SMALLEST_GAIN] = 0.0
     return Mapping(gains, keys.names, rig.names, offset=neutral)
 
 
@@ -370,12 +372,14 @@ def _take_mapping(keys: KeyShapes, rig: Rig, table: np.ndarray, own: np.ndarray,
 
     .. math::
 
-        \min_{c_t, g_t} \sum_f \big(y_t(f) - c_t - \textstyle\sum_{k \in R(t)} g_{tk} w_k(f)\big)^2
-        + \lambda n_f \lVert g_t \rVert^2,
+        \min_{0 \le c_t \le 1,\; g_t \ge 0} \sum_f \big(y_t(f) - c_t - \textstyle\sum_{k \in R(t)} g_{tk} w_k(f)\big)^2
+        + \lambda n_f \lVert g_t \rVert^2
 
-    then ``offset = clip(c, 0, 1)`` and ``gains = max(g, −offset)``. Every frame is evidence, not
-    only the key frames: what a key does on average over the take, its frame's own noise averaged
-    out. None when the take has too few frames with a face and weights.
+    by bounded least squares (BVLS): gains ``>= 0`` as every mapping's (``keyshape retarget --help``),
+    a key adds to a target or leaves it. Gains below :data:`SMALLEST_GAIN` are dropped and the rest
+    refitted. Every frame is evidence, not only the key frames: what a key does on average over the
+    take, its frame's own noise averaged out. None when the take has too few frames with a face and
+    weights.
     """
     S = np.asarray(scores.take, dtype=float)
     W = np.asarray(scores.weights, dtype=float)
@@ -389,11 +393,13 @@ def _take_mapping(keys: KeyShapes, rig: Rig, table: np.ndarray, own: np.ndarray,
     gains, offset = np.zeros((rig.n_targets, keys.n_keys)), np.zeros(rig.n_targets)
     for t in np.flatnonzero(table.any(axis=1)):
         columns = np.flatnonzero(own[t])
-        Xt = X[:, [0, *(columns + 1)]]
-        penalty = ridge * len(Xt) * np.diag([0.0] + [1.0] * len(columns))
-        coef = np.linalg.solve(Xt.T @ Xt + penalty, Xt.T @ Y[:, t])
-        offset[t] = np.clip(coef[0], 0, 1)
-        gains[t, columns] = np.maximum(coef[1:], -offset[t])
+        for _ in range(2):  # fit, then refit without the gains too small to matter
+            offset[t], gains[t, columns] = bounded_row(X[:, [0, *(columns + 1)]], Y[:, t], ridge)
+            small = gains[t, columns] < SMALLEST_GAIN
+            gains[t, columns[small]] = 0.0
+            if not small.any():
+                break
+            columns = columns[~small]
     return Mapping(gains, keys.names, rig.names, offset=offset)
 
 

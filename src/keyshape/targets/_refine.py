@@ -55,7 +55,7 @@ import numpy as np
 
 from ..containers import Rig, Track, Weights
 from ._correspond import Correspondence
-from ._mapping import Mapping, drive_gaze, retarget
+from ._mapping import SMALLEST_GAIN, Mapping, bounded_row, drive_gaze, retarget
 
 __all__ = ["REFINED_SCORES", "Refinement", "fit_in_landmarks", "fit_through_keys", "refinable_targets",
            "refine_mapping", "solve_corrections"]
@@ -206,20 +206,21 @@ def fit_in_landmarks(video, base, raised, route: np.ndarray, key_weights: np.nda
 
     .. math::
 
-        \min_\Theta \sum_t \lVert \Pi_t \big(\tilde r(t) + J(t) P(t) - J(t)\, \Theta\, x(t)\big) \rVert^2
-        + \lambda \bar d \lVert G \rVert^2,
+        \min_{0 \le c \le 1,\; G \ge 0}
+        \sum_t \lVert \Pi_t \big(\tilde r(t) + J(t) P(t) - J(t)\, \Theta\, x(t)\big) \rVert^2
+        + \lambda \bar d \lVert G \rVert^2
 
     ``d̄ = Σ_t tr(J̃ᵀJ̃) / n`` with ``J̃ = Π_t J(t)``, a target's information summed over the frames (so
     ``λ`` has no unit: a gain is shrunk by about ``v / (v + λ)`` for a key weight of variance ``v``;
     on the rendered loop, blended as :func:`refine_mapping` does, λ = 0.1–0.3 give 17.8–17.9 % on ICT
-    and 17.5 % on the caricature, λ = 0.01 18.2 % and 17.9 %, on renders of the loop). One linear system of
-    ``n (n_keys + 1)`` unknowns, no per-frame bounds: the key weights carry the evidence of every
+    and 17.5 % on the caricature, λ = 0.01 18.2 % and 17.9 %, on renders of the loop). One bounded least-squares
+    problem of ``n (n_keys + 1)`` unknowns, no per-frame bounds: the key weights carry the evidence of every
     frame to the mapping directly, where :func:`solve_corrections` estimates each frame alone.
 
     Returns
     -------
     offset : (n,) float in [0, 1]
-    gains : (n, n_keys) float, ``≥ −offset``
+    gains : (n, n_keys) float, ``≥ 0``
     """
     route = np.asarray(route, float)
     W = np.nan_to_num(np.asarray(key_weights, float))
@@ -235,9 +236,21 @@ def fit_in_landmarks(video, base, raised, route: np.ndarray, key_weights: np.nda
     information = np.trace(normal[:n, :n]) / n  # a target's information, summed over the frames
     penalty = np.full(size, ridge * information)
     penalty[:n] = 0.0  # the constant is not shrunk
-    theta = np.linalg.solve(normal + np.diag(penalty), moment).reshape(-1, n)
-    offset = np.clip(theta[0], 0, 1)
-    return offset, np.maximum(theta[1:].T, -offset[:, None])
+    theta = _bounded_quadratic(normal + np.diag(penalty), moment, n).reshape(-1, n)
+    return theta[0], theta[1:].T
+
+
+def _bounded_quadratic(hessian: np.ndarray, moment: np.ndarray, n: int) -> np.ndarray:
+    """``θ (size,)`` minimising ``θᵀ H θ − 2 mᵀ θ`` with the first ``n`` (the offsets) in [0, 1] and
+    the rest (the gains) ``>= 0``: BVLS on ``|R θ − R⁻ᵀ m|²``, ``H = RᵀR``."""
+    from scipy.linalg import solve_triangular
+    from scipy.optimize import lsq_linear
+
+    size = len(moment)
+    factor = np.linalg.cholesky(hessian + 1e-12 * np.trace(hessian) / size * np.eye(size)).T  # upper R
+    rhs = solve_triangular(factor, moment, trans="T")
+    upper = np.r_[np.ones(n), np.full(size - n, np.inf)]
+    return lsq_linear(factor, rhs, bounds=(np.zeros(size), upper), method="bvls").x
 
 
 def fit_through_keys(refined: np.ndarray, key_weights: np.ndarray, *, ridge: float = 1e-3
@@ -246,7 +259,10 @@ def fit_through_keys(refined: np.ndarray, key_weights: np.ndarray, *, ridge: flo
 
     .. math::
 
-        \min_{c_j, g_j} \sum_t \big(y_j(t) - c_j - g_j \cdot w(t)\big)^2 + \lambda n_t \lVert g_j \rVert^2
+        \min_{0 \le c_j \le 1,\; g_j \ge 0} \sum_t \big(y_j(t) - c_j - g_j \cdot w(t)\big)^2
+        + \lambda n_t \lVert g_j \rVert^2
+
+    (bounded least squares: a mapping's gains are ``>= 0``).
 
     Parameters
     ----------
@@ -259,16 +275,14 @@ def fit_through_keys(refined: np.ndarray, key_weights: np.ndarray, *, ridge: flo
     Returns
     -------
     offset : (n,) float in [0, 1]
-    gains : (n, n_keys) float, ``≥ −offset``
+    gains : (n, n_keys) float, ``≥ 0``
     """
     refined = np.asarray(refined, float)
     W = np.nan_to_num(np.asarray(key_weights, float))
     ok = np.isfinite(refined).all(axis=1)
     X = np.column_stack([np.ones(int(ok.sum())), W[ok]])
-    penalty = ridge * len(X) * np.diag([0.0] + [1.0] * W.shape[1])
-    coef = np.linalg.solve(X.T @ X + penalty, X.T @ refined[ok])  # (1 + n_keys, n)
-    offset = np.clip(coef[0], 0, 1)
-    return offset, np.maximum(coef[1:].T, -offset[:, None])
+    rows = [bounded_row(X, refined[ok, j], ridge) for j in range(refined.shape[1])]
+    return np.array([c for c, _ in rows]), np.array([g for _, g in rows]).reshape(refined.shape[1], W.shape[1])
 
 
 def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, track: Track, weights: Weights, *,
@@ -343,7 +357,8 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
     at_once = fit_in_landmarks(track.points[..., :2], base, raised, route[:, indices], weights.values[:, columns],
                                delta=delta, stable=stable_points(478))
     offset = blend * at_once[0] + (1 - blend) * per_frame[0]
-    gains = np.maximum(blend * at_once[1] + (1 - blend) * per_frame[1], -offset[:, None])
+    gains = blend * at_once[1] + (1 - blend) * per_frame[1]  # both >= 0
+    gains[gains < SMALLEST_GAIN] = 0.0
     matrix, offsets = np.array(mapping.matrix), np.array(mapping.offset)
     rows = [mapping.targets.index(name) for name in found]
     matrix[rows], offsets[rows] = gains, offset

@@ -63,6 +63,8 @@ class Take:
         The take's files that exist, by file name (``animation.glb``, ``weights.csv``, ...).
     key_frames : dict of str to int
         Source frame of each key shape of this take, by key name (from ``keys.json``).
+    key_regions : dict of str to str
+        The region of every key shape of ``keys.json`` (``upper``, ``lower``, ...), by key name.
     animation : str
         File name of the animated ``.glb`` among ``files``.
     video_times : tuple of float
@@ -77,6 +79,7 @@ class Take:
     video: Path | None = None
     files: dict[str, Path] = field(default_factory=dict)
     key_frames: dict[str, int] = field(default_factory=dict)
+    key_regions: dict[str, str] = field(default_factory=dict)
     animation: str = "animation.glb"
     video_times: tuple[float, ...] = ()
 
@@ -88,7 +91,7 @@ class Take:
                 "video_name": self.video.name if self.video else None,
                 "animation": f"/media/{self.animation}",
                 "files": {name: f"/media/{name}" for name in self.files},
-                "key_frames": self.key_frames,
+                "key_frames": self.key_frames, "key_regions": self.key_regions,
                 "video_times": list(self.video_times) if len(self.video_times) == self.n_frames else None}
 
 
@@ -120,9 +123,10 @@ def load_take(folder: str | Path) -> Take:
     video = Path(info["video"]) if info.get("video") else None
     keys_name = Path(listed.get("keys", "keys.json")).name
     track = files.get(Path(listed.get("track", "track.npz")).name)
+    frames, regions = _keys(files.get(keys_name), video)
     return Take(folder, float(fps), n_frames, info.get("neutral_frame"),
                 video if video is not None and video.is_file() else None, files,
-                _key_frames(files.get(keys_name), video), animation, _video_times(track))
+                frames, regions, animation, _video_times(track))
 
 
 def _video_times(track: Path | None) -> tuple[float, ...]:
@@ -134,17 +138,19 @@ def _video_times(track: Path | None) -> tuple[float, ...]:
     return tuple(round(float(t), 6) for t in load_track(track).time)
 
 
-def _key_frames(path: Path | None, video: Path | None) -> dict[str, int]:
-    """Key name -> source frame, for the keys taken from this take's video."""
+def _keys(path: Path | None, video: Path | None) -> tuple[dict[str, int], dict[str, str]]:
+    """``({key: source frame}, {key: region})``: the frames of the keys taken from this take's video,
+    the regions of every key of ``keys.json``."""
     if path is None:
-        return {}
+        return {}, {}
     try:
         regions = json.loads(path.read_text()).get("regions", {})
-        keys = [key for region in regions.values() for key in region.get("keys", [])]
-        return {str(key["name"]): int(key["frame"]) for key in keys
-                if video is None or key.get("take") in (None, video.name)}
+        keys = [(region, key) for region, entry in regions.items() for key in entry.get("keys", [])]
+        frames = {str(key["name"]): int(key["frame"]) for _, key in keys
+                  if video is None or key.get("take") in (None, video.name)}
+        return frames, {str(key["name"]): str(region) for region, key in keys}
     except (ValueError, TypeError, KeyError, AttributeError):
-        return {}  # the key file is a nicety here: the page works without it
+        return {}, {}  # the key file is a nicety here: the page works without it
 
 
 # --------------------------------------------------------------------------- byte ranges

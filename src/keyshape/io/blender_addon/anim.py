@@ -113,6 +113,26 @@ def find_node(objects, name: str):
     return None
 
 
+def pose_at_rest(nodes, object_rests: dict) -> None:
+    """Stand ``nodes`` (:func:`find_node` results) and their parents at rest, for :func:`turn`:
+    the bones and every bone above them with an identity pose, an object whose rotation is animated
+    turned to ``object_rests[its name]`` (a ``(w, x, y, z)`` quaternion; its file's rest), the
+    other objects as they are. Their animation sets them again on the next frame change."""
+    for owner, bone in nodes:
+        if bone is not None:
+            pose_bone = owner.pose.bones[bone]
+            while pose_bone is not None:
+                pose_bone.matrix_basis = Matrix.Identity(4)
+                pose_bone = pose_bone.parent
+            continue
+        action = owner.animation_data.action if owner.animation_data else None
+        animated = action is not None and any(c.data_path.startswith("rotation_") for c in action.fcurves)
+        if animated and owner.name in object_rests:
+            owner.rotation_mode = "QUATERNION"
+            owner.rotation_quaternion = object_rests[owner.name]
+    bpy.context.view_layer.update()
+
+
 def turn(turns, *, start: int = 1, name: str = "keyshape") -> None:
     """Key ``[(node, rotations (n_frames, 3, 3)), ...]`` (glTF world axes, each node about its pivot,
     its parents at rest) on each node, a :func:`find_node` result: the pose bone's or the object's

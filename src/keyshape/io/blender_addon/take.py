@@ -59,12 +59,21 @@ def read_weights(path) -> Take:
     return Take(tuple(rows[0][2:]), values, fps)
 
 
+def _info(folder: Path) -> dict:
+    if (folder / "take.json").is_file():
+        return json.loads((folder / "take.json").read_text(encoding="utf-8"))
+    return {}
+
+
+def take_files(folder) -> dict:
+    """``{"weights": name, "animation": name, ...}``: the take's files as ``take.json`` names them (else ``{}``)."""
+    return dict(_info(Path(folder)).get("files") or {})
+
+
 def read_take(folder) -> Take:
     """The key weights of a take folder, at the take's frame rate (``take.json`` when there is one)."""
     folder = Path(folder)
-    info = {}
-    if (folder / "take.json").is_file():
-        info = json.loads((folder / "take.json").read_text(encoding="utf-8"))
+    info = _info(folder)
     name = info.get("files", {}).get("weights", "weights.csv")
     if not (folder / name).is_file():
         raise ValueError(f"{folder}: no {name} here; choose the output folder of `keyshape run`")

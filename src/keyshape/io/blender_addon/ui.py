@@ -20,7 +20,7 @@ from pathlib import Path
 import bpy
 from bpy.props import BoolProperty, PointerProperty, StringProperty
 
-from . import anim, take
+from . import anim, gltf, take
 
 _PREVIEW_ROWS = 12
 _cache: dict = {}
@@ -81,7 +81,14 @@ def mapping_for(folder: str, mapping: str, loaded: take.Take, shape_keys) -> tak
 
 
 def import_take(context, folder: str, mapping: str = "") -> tuple[int, int, list]:
-    """Key the take in ``folder`` on the selected meshes; (n_frames, n_shape_keys, unmatched targets)."""
+    """Key the take in ``folder`` on the selected character; (n_frames, n_curves, what it lacks).
+
+    The shape keys the mapping drives, from ``weights.csv``; the take's ``animation.glb`` (when it is
+    there) gives the rest: the shape keys it animates that the mapping does not drive (the gaze's
+    ``eyeLook*``) and the turns of its head and eye nodes, keyed on the bones or objects of those
+    names in the selected character (its armature and everything below it). ``n_curves`` counts the
+    shape keys and nodes keyed; what it lacks names the targets and nodes of the take it has not.
+    """
     folder = bpy.path.abspath(folder)
     meshes = targets_of(context)
     if not meshes:
@@ -94,8 +101,43 @@ def import_take(context, folder: str, mapping: str = "") -> tuple[int, int, list
                          "give a mapping file")
     scene = context.scene
     anim.set_frame_rate(scene, loaded.fps, loaded.n_frames, scene.frame_start)
-    missing = anim.key_shape_keys(meshes, take.target_weights(loaded, chosen), start=scene.frame_start)
-    return loaded.n_frames, len(chosen.gains) - len(missing), missing
+    weights = take.target_weights(loaded, chosen)
+    performance = _take_animation(folder, loaded)
+    extra = {t: w for t, w in performance.weights.items() if t not in weights and t in names}
+    missing = anim.key_shape_keys(meshes, {**weights, **extra}, start=scene.frame_start)
+    objects = _character(meshes)
+    turns, lacking = [], []
+    for node_name, rotations in performance.turns.items():
+        node = anim.find_node(objects, node_name)
+        if node is None:
+            lacking.append(node_name)
+        else:
+            turns.append((node, rotations))
+    if turns:
+        # Blender's glTF importer gives an object the node's rotation (x, y, z, w) as (w, x, -z, y)
+        rests = {n: (q[3], q[0], -q[2], q[1]) for n, q in performance.rests.items()}
+        anim.pose_at_rest([node for node, _ in turns], rests)
+        anim.turn(turns, start=scene.frame_start)
+    return loaded.n_frames, len(weights) + len(extra) - len(missing) + len(turns), missing + lacking
+
+
+def _take_animation(folder: str, loaded: take.Take) -> gltf.Animation:
+    """The take's ``animation.glb`` (``take.json``'s name for it) on the take's frames; empty without one."""
+    path = Path(folder) / take.take_files(folder).get("animation", "animation.glb")
+    if not path.is_file():
+        return gltf.Animation()
+    return gltf.read_animation(path, loaded.fps, loaded.n_frames)
+
+
+def _character(meshes) -> list:
+    """Every object of the characters the meshes belong to: their topmost parents and all below them."""
+    roots = set()
+    for mesh in meshes:
+        root = mesh
+        while root.parent is not None:
+            root = root.parent
+        roots.add(root)
+    return [o for root in roots for o in (root, *root.children_recursive)]
 
 
 def preview(context, folder: str, mapping: str) -> list:
@@ -134,8 +176,8 @@ class KEYSHAPE_OT_import_take(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         if missing:
-            self.report({"WARNING"}, f"the selection has no shape keys {missing}")
-        self.report({"INFO"}, f"keyshape: {n_keys} shape keys keyed over {n_frames} frames")
+            self.report({"WARNING"}, f"the selection has no shape keys or bones {missing}")
+        self.report({"INFO"}, f"keyshape: {n_keys} shape keys and bones keyed over {n_frames} frames")
         return {"FINISHED"}
 
 
