@@ -191,7 +191,7 @@ def test_item03_a_second_signal_while_the_recording_is_written_loses_nothing(mad
     info = json.loads((record / "take.json").read_text())
     assert info["n_frames"] > 5 and load_track(record / "track.npz").n_frames == info["n_frames"]
     assert proc.returncode in (128 + kind, -kind), err  # a signal once it is done ends it at once: -kind
-    assert "Traceback" not in err and "keyshape: closing the outputs" in err and "solved and sent" in out
+    assert "Traceback" not in err and "keyshape: closing the outputs" in err and "solved" in out
 
 
 # -- Medium 5: a stopped Ray batch ends as every command does, and leaves nothing behind ---------------
@@ -427,3 +427,30 @@ def test_low_an_early_sigterm_leaves_no_empty_output_folder(made, two_takes, tmp
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143 and err.strip() == "keyshape: terminated", err
     assert list(tmp_path.iterdir()) == []  # neither OUTDIR nor the folders made for it
+
+
+def test_low_live_says_what_reached_each_receiver_and_fails_when_nothing_did(made):
+    """A broadcast address without SO_BROADCAST refuses every packet (EACCES): the session is not
+    "sent"; a real receiver on loopback gets every packet and the line says so."""
+    import socket
+
+    argv = ["live", made["video"], "--keys", made["keys"], "--duration", 1.5]
+    one_line_error(keyshape(*argv, "--vmc", "255.255.255.255:39539"), 1,
+                   "no packet reached VMC 255.255.255.255:39539")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as receiver:
+        receiver.bind(("127.0.0.1", 0))
+        receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+        port = receiver.getsockname()[1]
+        done = keyshape(*argv, "--vmc", f"127.0.0.1:{port}")
+        assert done.returncode == 0, done.stderr
+        receiver.setblocking(False)
+        received = 0
+        while True:
+            try:
+                receiver.recv(65536)
+            except BlockingIOError:
+                break
+            received += 1
+    line = next(text for text in done.stdout.splitlines() if text.startswith(f"live: VMC 127.0.0.1:{port}:"))
+    sent = int(line.split(": ")[2].split(" of ")[0])
+    assert line.endswith(f"{sent} of {sent} packets sent") and sent == received > 10

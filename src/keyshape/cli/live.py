@@ -117,21 +117,27 @@ def run(args) -> None:
     controls = Controls()
     say(args, f"live: {source.kind} {source.name}, {source.size[0]}x{source.size[1]} at {source.fps:g} fps; "
               "n + Enter (or SIGUSR1) re-captures the neutral, Ctrl-C stops")
+    senders = []  # the UDP outputs, to say what reached them
     with _listening(controls):
-        summary = run_live(source, lambda k: _session(args, source, k), keys=keys, calibrate=args.calibrate,
+        summary = run_live(source, lambda k: _session(args, source, k, senders), keys=keys, calibrate=args.calibrate,
                            upper=args.max, smoothing=_smoothing_of(args), face=args.face, controls=controls,
                            duration=args.duration, say=lambda text: say(args, text))
     say(args, _describe(summary))
+    for sender in senders:
+        say(args, f"live: {sender.report()}")
     if args.record is not None and summary.keys is not None:
         from ._options import shell_command
 
         rerun = shell_command("keyshape", "solve", args.record / "track.npz", args.record / "keys.json", "-o",
                               args.record / "weights.csv")
         say(args, f"recorded {args.record}/: re-solve offline with `{rerun}`")
-    if summary.error:
-        from ..exceptions import KeyshapeError
+    from ..exceptions import KeyshapeError
 
+    if summary.error:
         raise KeyshapeError(summary.error)
+    lost = [s for s in senders if s.errors and not s.sent]
+    if lost:
+        raise KeyshapeError("; ".join(f"no packet reached {s.kind} {s.target} ({s.last_error})" for s in lost))
     _exit_as_stopped(summary.ended)
 
 
@@ -152,8 +158,8 @@ def _smoothing_of(args):
     return DEFAULT_SMOOTHING if args.smoothing is None else args.smoothing
 
 
-def _session(args, source, keys):
-    """The outputs, once the key set is known."""
+def _session(args, source, keys, senders: list):
+    """The outputs, once the key set is known (the UDP ones also appended to ``senders``)."""
     from ..capture import BLENDSHAPE_NAMES
     from ..live import LiveLinkSender, Recorder, Session, VmcSender, live_targets
 
@@ -166,6 +172,7 @@ def _session(args, source, keys):
     if args.livelink:
         outputs.append(LiveLinkSender(*args.livelink, names=targets.names,
                                       fps=source.fps, subject=args.subject))
+    senders.extend(outputs)
     if args.record:
         outputs.append(Recorder(args.record, keys, fps=source.fps, image_size=source.size, rig=targets.rig,
                                 mapping=None if targets.builtin else targets.mapping,
@@ -227,7 +234,7 @@ def _describe(summary) -> str:
     sent = summary.processed
     share = 100 * summary.dropped / max(summary.delivered, 1)
     text = (f"live: {summary.delivered} frames from {summary.source} ({summary.fps:g} fps) in "
-            f"{summary.seconds:.1f} s: {sent} solved and sent, {summary.dropped} dropped ({share:.1f} %), "
+            f"{summary.seconds:.1f} s: {sent} solved, {summary.dropped} dropped ({share:.1f} %), "
             f"face in {100 * summary.faces / max(sent, 1):.0f} %")
     if sent:
         ms = 1000 * summary.latency

@@ -86,8 +86,11 @@ class UdpOutput:
     """A UDP socket to one receiver: sends never block and never fail the session.
 
     UDP has no connection: with no receiver listening the packets are simply lost (the count of
-    send errors, e.g. an ICMP "port unreachable" reported back, is kept in ``errors``).
+    send errors, e.g. an ICMP "port unreachable" reported back or a broadcast address refused, is
+    kept in ``errors``, the last one's reason in ``last_error``; :meth:`report` says it in a line).
     """
+
+    kind = "UDP"
 
     def __init__(self, host: str, port: int):
         try:
@@ -97,15 +100,23 @@ class UdpOutput:
         self.address = address
         self.socket = socket.socket(family, kind, proto)
         self.socket.setblocking(False)
+        self.target = f"{host}:{port}"
         self.sent = 0
         self.errors = 0
+        self.last_error: str | None = None
 
     def send_packet(self, packet: bytes) -> None:
         try:
             self.socket.sendto(packet, self.address)
             self.sent += 1
-        except OSError:  # no receiver (ICMP refused), buffer full: UDP carries on
+        except OSError as exc:  # no receiver (ICMP refused), buffer full: UDP carries on
             self.errors += 1
+            self.last_error = exc.strerror or type(exc).__name__
+
+    def report(self) -> str:
+        """One line: how many packets went to the receiver and how many could not be sent."""
+        text = f"{self.kind} {self.target}: {self.sent} of {self.sent + self.errors} packets sent"
+        return text + (f", {self.errors} failed ({self.last_error})" if self.errors else "")
 
     def close(self) -> None:
         self.socket.close()

@@ -172,6 +172,8 @@ class LiveLinkSender(UdpOutput):
         If no name is an ARKit coefficient.
     """
 
+    kind = "Live Link"
+
     def __init__(self, host: str, port: int = LIVELINK_PORT, *, names, fps: float,
                  subject: str = "keyshape", device_id: str | None = None):
         sources, _ = livelink_columns(names)

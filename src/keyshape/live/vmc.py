@@ -77,6 +77,8 @@ def vmc_bundle(frame: LiveFrame) -> bytes:
 class VmcSender(UdpOutput):
     """Send every frame to a VMC receiver at ``host:port`` (an :class:`~keyshape.live.frame.Output`)."""
 
+    kind = "VMC"
+
     def __init__(self, host: str, port: int = VMC_PORT, *, names=()):
         super().__init__(host, port)
         self._encoder = _Encoder(names)
