@@ -454,3 +454,16 @@ def test_low_live_says_what_reached_each_receiver_and_fails_when_nothing_did(mad
     line = next(text for text in done.stdout.splitlines() if text.startswith(f"live: VMC 127.0.0.1:{port}:"))
     sent = int(line.split(": ")[2].split(" of ")[0])
     assert line.endswith(f"{sent} of {sent} packets sent") and sent == received > 10
+
+
+@pytest.mark.parametrize("verb", ["run", "track"])
+def test_low_an_output_name_at_the_file_systems_limit_is_written(made, tmp_path, verb):
+    """A 254-byte output name: the temporary beside it (a stage folder, a ``.part`` file) is cut to
+    fit, never a longer name than the file system takes."""
+    out = tmp_path / ("a" * 254 if verb == "run" else "b" * 250 + ".npz")
+    argv = {"run": ["run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", out, "-q"],
+            "track": ["track", made["video"], "--end", 12, "-o", out, "-q"]}[verb]
+    done = keyshape(*argv)
+    assert done.returncode == 0, done.stderr
+    assert [p.name for p in tmp_path.iterdir()] == [out.name]
+    assert (out / "take.json").is_file() if verb == "run" else out.stat().st_size > 0

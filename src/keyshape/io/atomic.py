@@ -13,6 +13,7 @@ import signal
 import sys
 import tempfile
 import threading
+import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -37,7 +38,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     with new_folders(path.parent):
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{_room(path.stem, len(path.suffix) + 15)}.", suffix=f".part{path.suffix}",
+                                   dir=path.parent)
         os.close(fd)
         tmp = Path(tmp)
         try:
@@ -92,6 +94,17 @@ def named_write_errors(path: str | Path) -> Iterator[None]:
 
 
 SWITCH = ".keyshape-switch"  # in a folder while a stage's files move in: its presence says "incomplete"
+def _room(name: str, taken: int, limit: int = 255) -> str:
+    """``name`` as the start of a temporary's name that adds ``taken`` bytes: whole when that fits
+    the file system's 255-byte names, else cut and ended by a CRC-32 of the whole (so an output
+    name that is itself near the limit still gets a temporary beside it, the same one each time)."""
+    room = limit - taken
+    if len(name.encode()) <= room:
+        return name
+    tail = f"~{zlib.crc32(name.encode()):08x}"
+    return name.encode()[:room - len(tail)].decode(errors="ignore") + tail
+
+
 _STAGE = ".keyshape-stage"  # the end of every stage folder's name (".<folder>.<random>.keyshape-stage")
 
 
@@ -178,7 +191,8 @@ def _locked_stage(folder: Path) -> tuple[Path, int]:
     """A new stage folder beside ``folder`` and a descriptor of it holding its lock (``flock``;
     released when the process ends, however it ends)."""
     while True:
-        stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=_STAGE, dir=folder.parent))
+        stage = Path(tempfile.mkdtemp(prefix=f".{_room(folder.name, len(_STAGE) + 10)}.", suffix=_STAGE,
+                                     dir=folder.parent))
         try:
             fd = os.open(stage, os.O_RDONLY)
         except FileNotFoundError:  # taken for a dead one's before it was locked
@@ -192,7 +206,7 @@ def remove_dead_stages(parent: str | Path, name: str | None = None) -> list[Path
     """Remove the stage folders in ``parent`` (of the folder ``name``, or of any) whose process is
     gone: their lock is free. Returns them. Without ``fcntl`` (Windows) none can be told dead."""
     found = []
-    pattern = f".{glob.escape(name)}.*{_STAGE}" if name is not None else f".*{_STAGE}"
+    pattern = f".{glob.escape(_room(name, len(_STAGE) + 10))}.*{_STAGE}" if name is not None else f".*{_STAGE}"
     for stage in Path(parent).glob(pattern):
         try:
             fd = os.open(stage, os.O_RDONLY)
