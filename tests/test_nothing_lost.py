@@ -156,7 +156,7 @@ def test_item04_a_switch_cut_short_by_sigkill_is_refused_by_report_and_mended_by
     assert not (folder / "take.json").exists()  # cut: two files of the new take in, the rest old
     line = one_line_error(keyshape("report", folder, "--no-preview", "-q"), 1, f"{folder}: the last output")
     assert "cut short" in line and ".keyshape-switch" in line
-    assert len(list(tmp_path.glob(".take.*"))) == 1  # the killed run's stage
+    assert len(list(tmp_path.glob(".take.*.keyshape-stage"))) == 2  # the killed run's claim and its stage
     done = keyshape("run", made["video"], "--end", 12, "--count", 2, "--no-preview", "-o", folder, "-q")
     assert done.returncode == 0, done.stderr
     info = json.loads((folder / "take.json").read_text())
@@ -467,3 +467,21 @@ def test_low_an_output_name_at_the_file_systems_limit_is_written(made, tmp_path,
     assert done.returncode == 0, done.stderr
     assert [p.name for p in tmp_path.iterdir()] == [out.name]
     assert (out / "take.json").is_file() if verb == "run" else out.stat().st_size > 0
+
+
+def test_low_a_second_run_into_a_folder_being_written_is_refused_before_its_work(made, tmp_path):
+    out = tmp_path / "out"
+    argv = ["run", made["video"], "--end", 24, "--count", 2, "--no-preview", "-o", out]
+    first = subprocess.Popen([sys.executable, "-m", "keyshape", *map(str, argv)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(tmp_path.glob(".out.*.keyshape-stage")) and time.monotonic() < deadline:
+            time.sleep(0.05)  # the first has claimed the folder
+        one_line_error(keyshape(*argv), 1, f"{out}: another keyshape command is writing into it now")
+    finally:
+        stdout, stderr = first.communicate(timeout=600)
+    assert first.returncode == 0, stderr
+    assert stdout.count(f"wrote {out}/") == 1 and (out / "take.json").is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no claim left beside it
+    assert keyshape(*argv, "-q").returncode == 0  # the folder is free again

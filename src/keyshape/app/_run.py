@@ -295,6 +295,15 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     with ``options.extras``, ``preview.mp4`` (``options.preview``), the pictures and ``report.html``.
     Everything is staged and moved into ``outdir`` at the end; on error nothing is moved.
     """
+    from ..io.atomic import claimed_folder
+
+    with claimed_folder(outdir):  # a second run into the same folder meanwhile is refused before its work
+        return _run_take(video, outdir, options, progress=progress, track=track)
+
+
+def _run_take(video: str | Path, outdir: str | Path, options: RunOptions, *, progress: bool,
+              track: Track | None) -> TakeSummary:
+    """:func:`run_take`, once its output folder is claimed."""
     from ..capture import track_video
     from ._pipeline import discover_keys, key_scores, solve_take
     from ._stages import stage as announce

@@ -20,7 +20,7 @@ from pathlib import Path
 from ..exceptions import InputError, WriteError
 
 __all__ = ["atomic_path", "new_folders", "named_write_errors", "staged_folder", "check_switched", "remove_dead_stages",
-           "existing_file", "held_signals", "SWITCH"]
+           "existing_file", "held_signals", "claimed_folder", "SWITCH"]
 
 
 def _umask() -> int:
@@ -61,8 +61,8 @@ def new_folders(folder: str | Path) -> Iterator[Path]:
     while not above.exists() and above != above.parent:
         missing.append(above)  # the deepest first
         above = above.parent
-    folder.mkdir(parents=True, exist_ok=True)
-    try:
+    try:  # a signal in the middle of making them is a failure of the block too
+        folder.mkdir(parents=True, exist_ok=True)
         yield folder
     except BaseException:
         for made in missing:
@@ -132,8 +132,10 @@ def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = N
     folder = Path(folder)
     with new_folders(folder.parent):
         remove_dead_stages(folder.parent, folder.name)
-        stage, lock = _locked_stage(folder)
+        stage = lock = None
         try:
+            with held_signals():  # made and locked, or not made: never a stage the finally misses
+                stage, lock = _locked_stage(folder)
             yield stage
             written = sorted(p.name for p in stage.iterdir())
             if record in written:
@@ -141,8 +143,9 @@ def staged_folder(folder: str | Path, *, owned: Callable[[str], bool] | None = N
             with held_signals():
                 _switch(stage, folder, written, owned, record)
         finally:
-            shutil.rmtree(stage, ignore_errors=True)
-            os.close(lock)
+            if stage is not None:
+                shutil.rmtree(stage, ignore_errors=True)
+                os.close(lock)
 
 
 def _switch(stage: Path, folder: Path, written: list[str], owned: Callable[[str], bool] | None,
@@ -185,6 +188,53 @@ def check_switched(folder: str | Path) -> None:
     if journal.exists():
         raise InputError(f"{folder}: the last output moved into it was cut short ({journal} remains), so it "
                          "holds a mix of two outputs; run the command that wrote it again")
+
+
+@contextlib.contextmanager
+def claimed_folder(folder: str | Path) -> Iterator[Path]:
+    """Hold the output folder ``folder`` for one command, from its start to its end: a second command
+    given the same folder meanwhile is refused at once (InputError naming it), before its work, rather
+    than both writing it and both saying so. The claim is a locked, empty stage beside ``folder``
+    (as :func:`staged_folder` makes), so a claim whose process died is removed by the next one and
+    a finished command leaves nothing behind. Where locks are not to be had, nothing is refused."""
+    folder = Path(folder)
+    with new_folders(folder.parent):
+        remove_dead_stages(folder.parent, folder.name)
+        claim = lock = None
+        try:
+            with held_signals():  # made and locked, or not made: never a claim the finally misses
+                claim, lock = _locked_stage(folder)
+            if _living_stages(folder, but=claim):
+                raise InputError(f"{folder}: another keyshape command is writing into it now; wait for it to "
+                                 "end or give another output folder")
+            yield folder
+        finally:
+            if claim is not None:
+                shutil.rmtree(claim, ignore_errors=True)
+                os.close(lock)
+
+
+def _living_stages(folder: Path, *, but: Path) -> list[Path]:
+    """The stages of ``folder`` other than ``but`` whose lock a living process holds."""
+    living = []
+    for stage in folder.parent.glob(f".{glob.escape(_room(folder.name, len(_STAGE) + 10))}.*{_STAGE}"):
+        if stage == but:
+            continue
+        try:
+            fd = os.open(stage, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            import fcntl
+
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:  # held: a living process's
+            living.append(stage)
+        except (ImportError, OSError):  # no locks here: none can be told alive
+            pass
+        finally:
+            os.close(fd)
+    return living
 
 
 def _locked_stage(folder: Path) -> tuple[Path, int]:
