@@ -160,3 +160,16 @@ def test_a_worker_leaves_ctrl_c_to_the_parent():
     finally:
         _parallel.stop_workers([worker])
     assert worker.poll() is not None
+
+
+@pytest.mark.parametrize("block", [1, 3, 1024])
+def test_the_last_face_is_found_reading_backwards_block_by_block(block):
+    from keyshape.capture._parallel import _last_face
+
+    rng = np.random.default_rng(4)
+    points = np.full((50, 478, 3), np.nan, np.float32)
+    for row in (2, 17, 31):
+        points[row] = rng.uniform(100, 300, (478, 3))
+    row, centre, width = _last_face(points, block=block)
+    assert row == 31 and np.allclose(centre, _last_face(points[31:32])[1]) and width > 0
+    assert _last_face(points[:17], block=block)[0] == 2 and _last_face(points[3:17], block=block) is None
