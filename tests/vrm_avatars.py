@@ -104,7 +104,8 @@ def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False) -> Avata
         expressions["jawOpen"] = [(0, len(FACE_MORPHS), 1.0)]  # a custom expression; mouthSmileLeft stays a morph
     if version == "1.0":
         custom = {n: b for n, b in expressions.items() if n not in EXPRESSIONS}
-        extension = {"specVersion": "1.0", "meta": {"name": "keyshape test avatar", "licenseUrl": "", "authors": ["tests"]},
+        meta = {"name": "keyshape test avatar", "licenseUrl": "", "authors": ["tests"]}
+        extension = {"specVersion": "1.0", "meta": meta,
                      "humanoid": {"humanBones": {"head": {"node": 0}}},
                      "expressions": {
                          "preset": {n: {"morphTargetBinds": [{"node": m, "index": k, "weight": w} for m, k, w in b]}

@@ -217,7 +217,8 @@ def _binds(entry, field: str, owner: str, what: str, path) -> list[tuple[int, in
     out = []
     for bind in binds:
         try:
-            where, index, weight = bind[owner], bind["index"], float(bind.get("weight", 1.0 if owner == "node" else 100.0))
+            default = 1.0 if owner == "node" else 100.0  # the schemas' defaults
+            where, index, weight = bind[owner], bind["index"], float(bind.get("weight", default))
         except (KeyError, TypeError, ValueError, AttributeError):
             raise RigError(f"{path}: {what} has a bind without a whole {owner}, index and numeric weight: "
                            f"{bind!r}") from None
