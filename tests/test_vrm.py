@@ -159,3 +159,29 @@ def test_vmc_sends_the_avatars_own_names(tmp_path, version, sent):
     assert blend[vowels[0]] == pytest.approx(min(1.0, weights[0] + weights[5]), abs=1e-6)  # k0 + k5, clipped
     assert blend[vowels[1]] == pytest.approx(weights[1], abs=1e-6)
     assert blend[tuple(avatar.expressions)[8]] == 0.0  # Joy / happy: no key drives it
+
+
+@pytest.mark.slow
+def test_live_command_sends_the_vrm_0_names(demo_clip, tmp_path):
+    """`keyshape live CLIP --keys K --rig avatar.vrm --map MAP --vmc 127.0.0.1:PORT` on a VRM 0.x avatar:
+    every bundle a real OSC receiver gets carries the avatar's own names, `A`..`O`, `Blink`, in its order."""
+    from test_live import _live, _Receiver
+
+    from keyshape.io import save_keys
+
+    avatar = make_vrm(tmp_path / "avatar.vrm", "0.x")
+    perf = make_performance(n_frames=40, n_landmarks=478)  # MediaPipe's landmark count
+    save_keys(KeyShapes(perf.neutral, perf.key_deltas, ["a", "b", "c", "d"], perf.extreme_frames,
+                        perf.key_regions, perf.regions), tmp_path / "keys.json")
+    (tmp_path / "map.json").write_text(json.dumps({"a": {"A": 1.0}, "b": {"O": 1.0}, "c": {"Blink": 1.0},
+                                                   "d": {"I": 0.5, "E": 0.5, "U": 0.2}}))
+    with _Receiver() as receiver:
+        proc = _live(demo_clip, "--keys", tmp_path / "keys.json", "--rig", avatar.path, "--map",
+                     tmp_path / "map.json", "--vmc", f"127.0.0.1:{receiver.port}", "--duration", "1")
+        out, err = proc.communicate(timeout=120)
+        time.sleep(0.2)
+    assert proc.returncode == 0, err
+    assert len(receiver.bundles) >= 5, out
+    for got in receiver.bundles:
+        names = [args[0] for address, args in got if address == "/VMC/Ext/Blend/Val"]
+        assert tuple(names) == NAMES_0
