@@ -185,3 +185,51 @@ def test_live_command_sends_the_vrm_0_names(demo_clip, tmp_path):
     for got in receiver.bundles:
         names = [args[0] for address, args in got if address == "/VMC/Ext/Blend/Val"]
         assert tuple(names) == NAMES_0
+
+
+def _vrm_parts(version: str) -> tuple[dict, bytes, bytes]:
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = make_vrm(Path(folder) / "a.vrm", version, perfect_sync=True).path
+        return (*read_glb(path), path.read_bytes())
+
+
+def _glb_of(text: bytes, blob: bytes) -> bytes:
+    import struct
+
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<I4s", len(text), b"JSON") + text + struct.pack("<I4s", len(blob), b"BIN\0") + blob
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
+
+
+def _fuzz():
+    from hypothesis import strategies as st
+    from test_readers_fuzz import byte_edits, json_edits
+
+    cases = []
+    for version in ("1.0", "0.x"):
+        document, blob, data = _vrm_parts(version)
+        cases += [json_edits(document).map(lambda text, blob=blob: _glb_of(text, blob)),
+                  json_edits(document["extensions"]).map(
+                      lambda text, d=document, b=blob: _glb_of(json.dumps({**d, "extensions": json.loads(text)})
+                                                               .encode(), b)),
+                  byte_edits(data)]
+    return st.one_of(cases)
+
+
+def test_no_mutated_avatar_gives_a_traceback(tmp_path_factory):
+    """Mutations of both avatars (their JSON, their VRM extension, their bytes), as the readers' fuzz
+    test draws them: every one loads or raises keyshape's own error in one line."""
+    from hypothesis import given
+    from test_readers_fuzz import FUZZ, _loads_or_one_line
+
+    @FUZZ
+    @given(_fuzz())
+    def check(data):
+        path = tmp_path_factory.mktemp("vrm-fuzz") / "avatar.vrm"
+        path.write_bytes(data)
+        _loads_or_one_line(load_rig, path)
+
+    check()
