@@ -233,3 +233,22 @@ def test_no_mutated_avatar_gives_a_traceback(tmp_path_factory):
         _loads_or_one_line(load_rig, path)
 
     check()
+
+
+def test_unnamed_morph_targets_are_reached_by_index(tmp_path):
+    """Many exporters leave morph targets unnamed: the expressions are the same (binds are indices),
+    only the perfect-sync morphs, which need their names, are not kept."""
+    avatar = make_vrm(tmp_path / "named.vrm", "1.0", perfect_sync=True)
+    named = load_vrm(avatar.path)
+
+    def unname(document):
+        for mesh in document["meshes"]:
+            mesh.pop("extras")
+
+    path = make_vrm(tmp_path / "ps.vrm", "1.0", perfect_sync=True).path
+    document, blob = read_glb(path)
+    unname(document)
+    unnamed = load_vrm(write_glb(path, document, blob))
+    assert unnamed.arkit == () and unnamed.rig.names == named.rig.names[:-1]
+    np.testing.assert_array_equal(unnamed.rig.deltas, named.rig.deltas[:-1])
+    np.testing.assert_array_equal(unnamed.rig.vertices, named.rig.vertices)
