@@ -268,3 +268,24 @@ def test_the_test_avatars_are_valid_gltf(tmp_path, version):
     assert report["numErrors"] == 0, report["messages"]
     assert {m["code"] for m in report["messages"] if m["severity"] <= 1} <= {"INVALID_EXTENSION_NAME_FORMAT"}
     assert version == "0.x" or report["numWarnings"] == 0
+
+
+def test_retarget_onto_an_avatar(tmp_path):
+    """`keyshape retarget W.csv --rig avatar.vrm -o anim.glb`: a new file whose morph targets are the
+    avatar's expressions (as mixes), animated by the weights."""
+    from keyshape.cli import main
+    from keyshape.containers import Weights
+    from keyshape.io import save_weights_csv
+    from keyshape.io.gltf import read_glb_animation
+
+    avatar = make_vrm(tmp_path / "avatar.vrm", "0.x")
+    rig = load_rig(avatar.path)
+    values = np.random.default_rng(1).random((5, rig.n_targets))
+    save_weights_csv(Weights(values, rig.names, 30.0), tmp_path / "w.csv")
+    assert main(["retarget", str(tmp_path / "w.csv"), "--rig", str(avatar.path), "-o", str(tmp_path / "a.glb"),
+                 "-q"]) == 0
+    written = load_rig(tmp_path / "a.glb")
+    assert written.names == rig.names == NAMES_0
+    np.testing.assert_allclose(written.pose(values), rig.pose(values), atol=1e-6)
+    animation = read_glb_animation(tmp_path / "a.glb")
+    np.testing.assert_allclose(animation.weights, values, atol=1e-6)
