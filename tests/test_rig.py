@@ -104,7 +104,7 @@ def test_unknown_paths(tmp_path):
     with pytest.raises(RigError, match="no rig at"):
         load_rig(tmp_path / "nothing")
     (tmp_path / "hero.fbx").write_bytes(b"")
-    with pytest.raises(RigError, match=r"expected an OBJ folder, an \.obj, a \.glb/\.gltf or a USD"):
+    with pytest.raises(RigError, match=r"expected an OBJ folder, an \.obj, a \.glb/\.gltf, a \.vrm or a USD"):
         load_rig(tmp_path / "hero.fbx")
 
 

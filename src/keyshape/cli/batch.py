@@ -44,7 +44,7 @@ def add_arguments(p) -> None:
                    help="video files and/or folders of videos")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUTDIR")
     p.add_argument("--rig", type=Path, default=None,
-                   help="character for every take (OBJ folder, .glb/.gltf or USD), as for `run`")
+                   help="character for every take (OBJ folder, .glb/.gltf, .vrm or USD), as for `run`")
     p.add_argument("--map", type=Path, default=None, metavar="MAP.json",
                    help="key -> rig target gains (JSON), as for `run`")
     keys = p.add_mutually_exclusive_group()

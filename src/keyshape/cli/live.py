@@ -66,7 +66,8 @@ def add_arguments(p) -> None:
                       help="the key set (from `keyshape run`, `keyshape keys` or an earlier --record)")
     keys.add_argument("--calibrate", type=positive, default=None, metavar="SECONDS",
                       help="discover the keys from the first SECONDS (make every expression), then go live")
-    p.add_argument("--rig", type=Path, default=None, help="character whose targets to drive (.glb, OBJ folder, USD)")
+    p.add_argument("--rig", type=Path, default=None,
+                   help="character whose targets to drive (.glb, .vrm, OBJ folder, USD)")
     p.add_argument("--map", type=Path, default=None, metavar="MAP.json", help="key -> target gains")
     p.add_argument("--auto-targets", action="store_true",
                    help="with --rig: propose a key -> target mapping for a rig with its own blendshapes")

@@ -34,8 +34,8 @@ def add_arguments(p) -> None:
     p.add_argument("weights", type=Path, help="weights CSV from `keyshape solve`")
     p.add_argument("--rig", type=Path, default=None,
                    help="folder of OBJs (neutral.obj + <target>.obj), a single .obj, a .glb/.gltf with "
-                        "named morph targets, or a USD file with UsdSkel blend shapes; required except "
-                        "for CSV outputs through --map")
+                        "named morph targets, a .vrm avatar (its expressions), or a USD file with UsdSkel "
+                        "blend shapes; required except for CSV outputs through --map")
     p.add_argument("--map", type=Path, default=None, metavar="MAP.json",
                    help="key -> targets gains (JSON); default: each key drives the target of its name")
     p.add_argument("--track", type=Path, default=None,

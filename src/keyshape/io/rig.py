@@ -8,7 +8,9 @@ A rig is one of
   (:func:`keyshape.io.gltf.read_rig`: several meshes and primitives sharing the names,
   skinned or not, placed in the world by their nodes);
 * a USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``) with UsdSkel blend shapes
-  (:func:`keyshape.io.usd.read_rig`, needs ``usd-core``).
+  (:func:`keyshape.io.usd.read_rig`, needs ``usd-core``);
+* a VRM avatar (``.vrm``, VRM 1.0 or 0.x): one target per expression, the mix of morph targets
+  it binds (:func:`load_vrm`).
 
 Either way it becomes a :class:`~keyshape.containers.Rig`: neutral vertices plus one delta
 (target − neutral) per target, so that ``V(t) = N + Σ w_i(t) (T_i − N)`` (the paper's Eq. 1).
@@ -28,14 +30,17 @@ import numpy as np
 
 from ..containers import Rig
 from ..exceptions import InputError, RigError
+from ._vrm_read import VrmAvatar, VrmExpression
 from .atomic import atomic_path
 
-__all__ = ["load_rig", "save_obj_folder", "read_obj", "parse_unit", "RIG_SUFFIXES"]
+__all__ = ["load_rig", "load_vrm", "save_obj_folder", "read_obj", "parse_unit", "RIG_SUFFIXES", "VrmAvatar",
+           "VrmExpression"]
 
 NEUTRAL = "neutral"
 GLTF_SUFFIXES = (".glb", ".gltf")
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
-RIG_SUFFIXES = (*GLTF_SUFFIXES, *USD_SUFFIXES, ".obj")
+VRM_SUFFIXES = (".vrm",)
+RIG_SUFFIXES = (*GLTF_SUFFIXES, *VRM_SUFFIXES, *USD_SUFFIXES, ".obj")
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 # image (x right, y down, z away from camera) -> glTF (x right, y up, z toward viewer)
 _SAFE_NAME = re.compile(r"^[^/\\:*?\"<>|\x00-\x1f]+$")
@@ -51,8 +56,8 @@ def load_rig(path, *, unit: float = 1.0) -> Rig:
         "neutral") and ``<target>.obj`` files with one topology (targets sorted by name);
         a single ``.obj`` (a neutral with no targets, e.g. to sculpt on); a ``.glb``/``.gltf``
         with named morph targets (in world space: node transforms applied, skinned meshes as stored;
-        quantized geometry decoded); or a USD
-        file with UsdSkel blend shapes.
+        quantized geometry decoded); a ``.vrm`` avatar (its expressions as targets, see
+        :func:`load_vrm`); or a USD file with UsdSkel blend shapes.
     unit : float, keyword-only
         Metres per OBJ unit (0.01 for centimetres). glTF and USD files state their units.
 
@@ -84,7 +89,7 @@ def load_rig(path, *, unit: float = 1.0) -> Rig:
     if path.is_dir() or suffix == ".obj":
         rig = _load_obj_folder(path) if path.is_dir() else _load_obj_file(path)
         return _scaled(rig, unit)
-    if unit != 1.0 and suffix in GLTF_SUFFIXES + USD_SUFFIXES:
+    if unit != 1.0 and suffix in GLTF_SUFFIXES + VRM_SUFFIXES + USD_SUFFIXES:
         raise InputError(f"{str(path)!r}: unit applies to OBJ files only; glTF is in metres and USD "
                          "states its metersPerUnit")
     if suffix in GLTF_SUFFIXES:
@@ -95,14 +100,53 @@ def load_rig(path, *, unit: float = 1.0) -> Rig:
         except (IndexError, KeyError, TypeError, AttributeError, OverflowError, ZeroDivisionError,
                 FloatingPointError) as error:  # a field missing or of the wrong kind, deep in the file
             raise RigError(f"{path}: a damaged glTF file ({error.__class__.__name__}: {error})") from None
+    if suffix in VRM_SUFFIXES:
+        return load_vrm(path).rig
     if suffix in USD_SUFFIXES:
         from .usd import read_rig
 
         return read_rig(path)
-    expected = "an OBJ folder, an .obj, a .glb/.gltf or a USD (.usd/.usda/.usdc/.usdz) file"
+    expected = "an OBJ folder, an .obj, a .glb/.gltf, a .vrm or a USD (.usd/.usda/.usdc/.usdz) file"
     if not path.exists():
         raise RigError(f"no rig at {str(path)!r}: expected {expected}")
     raise RigError(f"cannot load a rig from {str(path)!r}: expected {expected}")
+
+
+def load_vrm(path) -> VrmAvatar:
+    """A VRM avatar (``.vrm``: VRM 1.0's ``VRMC_vrm`` or VRM 0.x's ``VRM`` extension) and its rig.
+
+    The rig holds the meshes with morph targets in world space (as :func:`load_rig` reads a
+    ``.glb``; a VRM 0.x avatar, which faces −Z, turned to face +Z), and one target per expression,
+    named as the avatar names it (VRM 1.0: ``aa``, ``blink``, custom names; VRM 0.x: ``A``,
+    ``Blink``, ``Joy``, group names): ``delta = Σ weight · morph delta`` over its binds (weights
+    in [0, 1]; VRM 0.x's 0..100 divided by 100). Morph targets with ARKit names that no
+    expression has are targets too ("perfect sync").
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    VrmAvatar
+        ``rig`` (a :class:`~keyshape.containers.Rig`), ``version`` (``"1.0"`` or ``"0.x"``),
+        ``expressions`` (name, VRM 1.0 preset or None, binds), ``arkit`` (perfect-sync names).
+
+    Raises
+    ------
+    RigError
+        One line naming the file and what is wrong with it.
+    """
+    from ._vrm_read import read_vrm
+
+    path = Path(path)
+    if not path.is_file():
+        raise RigError(f"no rig at {str(path)!r}: no such VRM file")
+    try:
+        return read_vrm(path)
+    except (IndexError, KeyError, TypeError, AttributeError, OverflowError, ZeroDivisionError,
+            FloatingPointError, ValueError) as error:
+        raise RigError(f"{path}: a damaged VRM file ({error.__class__.__name__}: {error})") from None
 
 
 def _check_unit(unit) -> float:
