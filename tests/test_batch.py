@@ -102,11 +102,15 @@ def test_rerun_skips_finished_takes(sequential_out, takes, tmp_path):
     out = tmp_path / "out"
     shutil.copytree(sequential_out, out)
     (out / "demo_b" / "weights.csv").unlink()  # an incomplete take is done again
+    (out / "single_face" / "keys.json").write_text("garbage")  # and one whose output was overwritten
+    (out / "demo_c" / "notes.txt").write_text("the user's own")  # the user's own file changes nothing
     before = (out / "demo_a" / "weights.csv").stat().st_mtime_ns
     assert _batch(takes, "-o", out, "--sequential") == 1
     rows = _summary(out)
     assert {n: rows[f"{n}.mp4"]["status"] for n in GOOD} == {
-        "single_face": "skipped", "demo_a": "skipped", "demo_b": "ok", "demo_c": "skipped"}
+        "single_face": "ok", "demo_a": "skipped", "demo_b": "ok", "demo_c": "skipped"}
+    assert (out / "single_face" / "keys.json").read_bytes() == (sequential_out / "single_face" / "keys.json").read_bytes()
+    assert (out / "demo_c" / "notes.txt").read_text() == "the user's own"
     assert rows["corrupt.mp4"]["status"] == "failed"
     assert rows["demo_a.mp4"]["frames"] == "48" and rows["demo_a.mp4"]["error_pct"]  # kept from before
     assert (out / "demo_a" / "weights.csv").stat().st_mtime_ns == before

@@ -180,7 +180,20 @@ def _is_current(folder: Path, video: Path, options: RunOptions) -> bool:
         made = json.loads((folder / MANIFEST).read_text())
     except (OSError, ValueError):
         return False
-    return made == take_manifest(video, options)
+    if not isinstance(made, dict) or not isinstance(made.get("outputs"), dict):
+        return False
+    outputs = made.pop("outputs")
+    return made == take_manifest(video, options) and outputs == _output_digests(folder)
+
+
+def _output_digests(folder: Path) -> dict[str, str]:
+    """SHA-256 of every file the take's run wrote (its ``take.json`` says which, itself included): a
+    take whose output was changed since (a keys.json overwritten, a weights.csv edited) is made
+    again, not skipped. The user's own files in the folder do not count."""
+    from ..io.take import written_by
+
+    names = sorted(written_by(folder) | {"take.json"})
+    return {name: fingerprint(folder / name) if (folder / name).is_file() else None for name in names}
 
 
 def _write_manifest(folder: Path, manifest: dict) -> None:
@@ -223,7 +236,7 @@ def _run_task(job: tuple[Path, Path, RunOptions, Path | None]) -> BatchRow:
             row = _row(run_take(video, outdir, options, progress=False))
         else:
             row = _row(_run_tracked(video, outdir, options, track_path))
-        _write_manifest(outdir, manifest)
+        _write_manifest(outdir, {**manifest, "outputs": _output_digests(outdir)})
         return row
 
     return _guarded(video.name, work)
