@@ -109,7 +109,8 @@ def test_rerun_skips_finished_takes(sequential_out, takes, tmp_path):
     rows = _summary(out)
     assert {n: rows[f"{n}.mp4"]["status"] for n in GOOD} == {
         "single_face": "ok", "demo_a": "skipped", "demo_b": "ok", "demo_c": "skipped"}
-    assert (out / "single_face" / "keys.json").read_bytes() == (sequential_out / "single_face" / "keys.json").read_bytes()
+    redone = (out / "single_face" / "keys.json").read_bytes()
+    assert redone == (sequential_out / "single_face" / "keys.json").read_bytes()
     assert (out / "demo_c" / "notes.txt").read_text() == "the user's own"
     assert rows["corrupt.mp4"]["status"] == "failed"
     assert rows["demo_a.mp4"]["frames"] == "48" and rows["demo_a.mp4"]["error_pct"]  # kept from before
