@@ -35,6 +35,7 @@ import numpy as np
 
 from ..containers import Rig
 from ..exceptions import InputError, RigError
+from .livelink import LIVELINK_NAMES
 
 __all__ = ["VrmAvatar", "VrmExpression", "read_vrm", "PRESETS_1", "PRESETS_0"]
 
@@ -246,10 +247,4 @@ def _checked(raw, document, meshes, path) -> list[VrmExpression]:
     return out
 
 
-def _arkit_names() -> frozenset[str]:
-    from ..capture.mediapipe import BLENDSHAPE_NAMES
-
-    return frozenset(n.lower() for n in BLENDSHAPE_NAMES if not n.startswith("_"))
-
-
-_ARKIT_LOWER = _arkit_names()
+_ARKIT_LOWER = frozenset(n.lower() for n in LIVELINK_NAMES)  # the 52 ARKit names, case folded

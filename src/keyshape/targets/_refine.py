@@ -356,7 +356,7 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
     per_frame = fit_through_keys(refined, weights.values[:, columns])
     at_once = fit_in_landmarks(track.points[..., :2], base, raised, route[:, indices], weights.values[:, columns],
                                delta=delta, stable=stable_points(478))
-    offset = blend * at_once[0] + (1 - blend) * per_frame[0]
+    offset = np.maximum(blend * at_once[0] + (1 - blend) * per_frame[0], 0.0)  # both >= 0; rounding can go -1e-20
     gains = blend * at_once[1] + (1 - blend) * per_frame[1]  # both >= 0
     gains[gains < SMALLEST_GAIN] = 0.0
     matrix, offsets = np.array(mapping.matrix), np.array(mapping.offset)
