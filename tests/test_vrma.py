@@ -167,6 +167,8 @@ def test_gaze_turns_the_look_at(tmp_path):
     extension, tracks, nodes = read_vrma(out)
     look = extension["lookAt"]["node"]
     assert look in nodes[extension["humanoid"]["humanBones"]["head"]["node"]]["children"]
+    assert extension["lookAt"]["offsetFromHeadBone"] == nodes[look]["translation"]
+    assert nodes[look]["translation"][1] > 0 and "rotation" not in nodes[look]  # rest: looking ahead, +Z
     _, quats = tracks[look, "rotation"]
     angles = np.degrees(Rotation.from_quat(quats).as_euler("YXZ"))  # three.js's Euler order for VRM look-at
     expected_yaw, expected_pitch = np.linspace(0, 25, n), -np.linspace(0, 10, n)

@@ -19,10 +19,13 @@ and one for the gaze, and one glTF animation moving them. What keyshape writes:
 * **head** — the ``head`` bone's rotation per frame from the take's head poses
   (:func:`keyshape.schemes.head_rotations`, frames without a pose holding the previous one), as
   the normalized bone rotation (the rest is the identity). The other bones stay at rest.
-* **gaze** — with eye rotations, the ``lookAt`` node's rotation per frame: the turn from straight
-  ahead (+Z) to the mean gaze direction of the two eyes relative to the head, whose Y-X-Z Euler
-  angles are VRM's look-at yaw and pitch (what three-vrm-animation reads). The humanoid's
-  ``leftEye``/``rightEye`` may not be in a VRMA; the avatar's look-at turns its eyes.
+* **gaze** — with eye rotations, the ``lookAt`` node's local rotation per frame (a child of the
+  head, at ``offsetFromHeadBone``): the turn from straight ahead (+Z) to the mean gaze direction
+  of the two eyes relative to the head, whose extrinsic Z-X-Y Euler angles are VRM's look-at yaw
+  (about Y) and pitch (about X), as the 1.0 text has it and three-vrm-animation reads it. (The
+  1.0 draft took the node's *position* as a gaze target; readers still on the draft, such as
+  the VRM add-on for Blender 4.10, ignore this gaze.) The humanoid's ``leftEye``/``rightEye``
+  may not be in a VRMA; the avatar's look-at turns its eyes.
 
 The skeleton's proportions are a 1.5 m-tall figure scaled so its head is as high as the avatar's
 ``head`` bone (when the avatar names one); bone positions only place the rest pose, since
@@ -232,7 +235,7 @@ def _document(animation: Weights, preset: dict, custom: dict, poses, eyes, head_
             expressions[group] = entries
     extension["expressions"] = expressions
     if look is not None:
-        extension["lookAt"] = {"node": look}
+        extension["lookAt"] = {"node": look, "offsetFromHeadBone": document.nodes[look].translation}
     document.extensionsUsed = ["VRMC_vrm_animation"]
     document.extensions = {"VRMC_vrm_animation": extension}
     return document
