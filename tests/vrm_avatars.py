@@ -81,7 +81,8 @@ def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False, skeleton
     """Write a test avatar to ``path`` (VRM ``"1.0"`` or ``"0.x"``) and return its known answers.
 
     ``skeleton``: also a humanoid skeleton of :data:`BONES` (nodes 3 on, beside the meshes, which
-    it does not move), every required bone named in the humanoid, as players need."""
+    it does not move), every required bone named in the humanoid, and a look-at through the look
+    expressions, as players need."""
     path = Path(path)
     (face, face_faces, face_names, face_morphs), (teeth, teeth_faces, teeth_names, teeth_morphs) = \
         _geometry(perfect_sync)
@@ -133,6 +134,8 @@ def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False, skeleton
         extension = {"specVersion": "1.0", "meta": meta,
                      "humanoid": {"humanBones": {b: {"node": i} for b, i in bones.items()} if skeleton
                                   else {"head": {"node": 0}}},
+                     **({"lookAt": {"type": "expression", "offsetFromHeadBone": [0.0, 0.06, 0.0]}}
+                        if skeleton else {}),
                      "expressions": {
                          "preset": {n: {"morphTargetBinds": [{"node": m, "index": k, "weight": w} for m, k, w in b]}
                                     for n, b in expressions.items() if n in EXPRESSIONS},
@@ -151,8 +154,8 @@ def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False, skeleton
             named[label] = binds
         gltf_extensions = {"VRM": {"specVersion": "0.0", "exporterVersion": "keyshape-tests",
                                    "meta": {"title": "keyshape test avatar"},
-                                   **({"humanoid": {"humanBones": [{"bone": b, "node": i} for b, i in bones.items()]}}
-                                      if skeleton else {}),
+                                   **({"humanoid": {"humanBones": [{"bone": b, "node": i} for b, i in bones.items()]},
+                                       "firstPerson": {"lookAtTypeName": "BlendShape"}} if skeleton else {}),
                                    "blendShapeMaster": {"blendShapeGroups": groups}}}
         used = ["VRM"]
     document = {"asset": {"version": "2.0", "generator": "keyshape tests"}, "scene": 0,
