@@ -12,7 +12,7 @@ import warnings
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from vrm_avatars import FACE_TRANSLATION, make_vrm, read_glb
+from vrm_avatars import BONES, FACE_TRANSLATION, make_vrm, read_glb
 
 from keyshape.capture import Gaze
 from keyshape.containers import Poses, Weights
@@ -112,12 +112,15 @@ def _turns(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.radians(30) * np.sin(2 * np.pi * t), np.radians(15) * t
 
 
-def test_head_bone_turns_as_the_poses(tmp_path):
+@pytest.mark.parametrize("version, skeleton", [("1.0", False), ("0.x", True), ("0.x", False)])
+def test_head_bone_turns_as_the_poses(tmp_path, version, skeleton):
     """The head bone's rotation is the pose's, in glTF axes (x right, y up, z toward the viewer: the
     image's y and z flipped, so a turn about image y by θ is a turn about glTF y by −θ, about image
     x by φ one about glTF x by φ); a frame without a pose holds the one before. Rest: the VRM
-    T-pose (no bone rotated), every required bone, the head at the avatar's head height."""
-    avatar = make_vrm(tmp_path / "avatar.vrm", "1.0")
+    T-pose (no bone rotated), every required bone, the head at the avatar's head height (its face
+    node's on the plain 1.0 avatar, its head bone's in the 0.x list of bones), or the 1.5 m
+    figure's 1.45 m when the avatar names no head (the plain 0.x one)."""
+    avatar = make_vrm(tmp_path / "avatar.vrm", version, skeleton=skeleton)
     vrm = load_vrm(avatar.path)
     n = 12
     yaw, nod = _turns(n)
@@ -147,7 +150,8 @@ def test_head_bone_turns_as_the_poses(tmp_path):
             y, node = y + nodes[node]["translation"][1], parent.get(node)
         return y
 
-    assert height("head") == pytest.approx(FACE_TRANSLATION[1], abs=1e-6)  # the avatar's head node
+    named = {"1.0": FACE_TRANSLATION[1], "0.x": {b: p for b, _, p in BONES}["head"][1] if skeleton else 1.45}
+    assert height("head") == pytest.approx(named[version], abs=1e-6)
     assert 0 < height("hips") < height("spine") < height("head")
 
 
