@@ -52,7 +52,7 @@ from ..schemes import rotations_to_gltf
 from ._gltf_anim import check_eyes, check_poses, pose_quaternions
 from ._gltf_edit import Blob
 from ._gltf_nodes import continuous_hemisphere, world_matrix
-from ._vrm_read import PRESETS_1, VrmAvatar
+from ._vrm_read import PRESETS_1, VrmAvatar, read_vrm
 from .atomic import atomic_path
 from .validate import check_weight_values
 
@@ -136,8 +136,6 @@ def write_vrma(path, animation: Weights, avatar_path, *, poses: Poses | None = N
     RigError
         ``avatar_path`` is not a readable VRM avatar.
     """
-    from .rig import load_vrm
-
     path = Path(path)
     if path.suffix.lower() != ".vrma":
         raise InputError(f"{path}: a VRM Animation file must end in .vrma")
@@ -146,7 +144,7 @@ def write_vrma(path, animation: Weights, avatar_path, *, poses: Poses | None = N
     check_eyes(eyes, animation)
     if animation.n_frames == 0:
         raise InputError(f"{path}: the take has no frames to animate")
-    avatar = load_vrm(avatar_path)
+    avatar = read_vrm(avatar_path)
     preset, custom, left_out = vrma_expression_names(avatar, animation.names)
     if not preset and not custom:
         raise InputError(f"{path}: none of the animation's targets {list(animation.names)[:8]} is an expression "
