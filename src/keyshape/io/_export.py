@@ -15,6 +15,8 @@ format        suffixes                         writer
 ``fbx``       ``.fbx``                         :func:`keyshape.io.blender.write_blender`: Blender's
 ``blend``     ``.blend``                       FBX exporter, or a Blender file (``bpy``, the
                                                ``blender`` extra, run in its own process)
+``vrma``      ``.vrma``                        :func:`keyshape.io._vrma_write.write_vrma`: VRM
+                                               Animation 1.0 for the ``.vrm`` avatar ``source``
 ============  ===============================  ==================================================
 """
 
@@ -38,10 +40,12 @@ class Format(StrEnum):
     LIVELINK = "livelink"
     FBX = "fbx"
     BLEND = "blend"
+    VRMA = "vrma"
 
 
 _SUFFIXES = {".glb": Format.GLB, ".usd": Format.USD, ".usda": Format.USD, ".usdc": Format.USD,
-             ".usdz": Format.USD, ".csv": Format.CSV, ".fbx": Format.FBX, ".blend": Format.BLEND}
+             ".usdz": Format.USD, ".csv": Format.CSV, ".fbx": Format.FBX, ".blend": Format.BLEND,
+             ".vrma": Format.VRMA}
 _NEEDS_RIG = (Format.GLB, Format.USD, Format.FBX, Format.BLEND)
 _BLENDER = (Format.FBX, Format.BLEND)
 
@@ -94,20 +98,23 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     rig : Rig, optional, keyword-only
         Needed for ``usd``, and for ``glb``, ``fbx`` and ``blend`` without a glTF ``source``.
     poses : Poses, optional, keyword-only
-        Head poses (image convention) for ``glb``, ``usd`` and ``livelink``; ignored by ``csv``.
+        Head poses (image convention) for ``glb``, ``usd``, ``livelink`` and ``vrma``; ignored by
+        ``csv``.
     format : str or Format, optional, keyword-only
         Default: from the suffix (``livelink`` must be asked for).
     source : str or Path, optional, keyword-only
         The file the rig came from: ``glb`` output onto a ``.glb``/``.gltf`` source and ``usd``
         output onto a USD source keep that file whole and add the animation; so do ``fbx`` and
-        ``blend`` onto a glTF source (through Blender)
+        ``blend`` onto a glTF source (through Blender); ``vrma`` needs the ``.vrm`` avatar it
+        animates
         (:func:`keyshape.io.gltf.animate_gltf`, :func:`keyshape.io.usd.animate_usd`).
     head : str, optional, keyword-only
         The node of ``source`` to turn with the head (default: found by name; see
         :func:`keyshape.io.gltf.animate_gltf`).
     eyes : (n_frames, 2, 3, 3) float, optional, keyword-only
-        Eye rotations relative to the head (left eye first), for ``livelink`` and for ``glb`` onto
-        ``source`` (its eye nodes); files keyshape builds have no eyes and ignore them.
+        Eye rotations relative to the head (left eye first), for ``livelink``, ``vrma`` (its
+        look-at) and for ``glb`` onto ``source`` (its eye nodes); files keyshape builds have no
+        eyes and ignore them.
     colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
         sRGB base colour per vertex of ``rig``, for ``glb`` written from it (``COLOR_0``).
 
@@ -118,9 +125,17 @@ def export(animation: Weights, path, *, rig: Rig | None = None, poses: Poses | N
     Raises
     ------
     InputError
-        Unknown format or suffix, or ``rig`` missing where it is needed.
+        Unknown format or suffix, ``rig`` missing where it is needed, or ``vrma`` without a
+        ``.vrm`` source.
     """
     chosen = format_of(path, format)
+    if chosen is Format.VRMA:
+        if source is None or Path(source).suffix.lower() != ".vrm":
+            raise InputError(f"{path}: a VRM Animation is written for a VRM avatar: give the .vrm it animates "
+                             f"(the rig, --rig avatar.vrm)")
+        from ._vrma_write import write_vrma
+
+        return write_vrma(path, animation, source, poses=poses, eyes=eyes)
     kind = _source_kind(source)
     glb_source, usd_source = kind is Format.GLB, kind is Format.USD
     if chosen in _NEEDS_RIG and rig is None and kind is not chosen and not (chosen in _BLENDER and glb_source):
