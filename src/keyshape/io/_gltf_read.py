@@ -60,12 +60,15 @@ class GlbAnimation(NamedTuple):
     rotations : (n_frames, 4) float or None
         Quaternions (x, y, z, w) of the animation's first ``rotation`` channel (the head's, in
         files keyshape writes), as stored (the node's local rotation), or None.
+    node : int or None
+        The node that channel turns.
     """
 
     names: tuple[str, ...]
     times: np.ndarray
     weights: np.ndarray
     rotations: np.ndarray | None
+    node: int | None = None
 
 
 class Part(NamedTuple):
@@ -581,7 +584,8 @@ def _read_animation(document, buffers, animation) -> GlbAnimation:
     names = tuple(columns)
     weights = np.stack([columns[n] for n in names], axis=1) if names else np.zeros((len(times), 0))
     rotation = [c for c in animation.channels if c.target.path == "rotation"]
-    rotations = None
+    rotations = node = None
     if rotation:
         rotations = read_accessor(document, buffers, animation.samplers[rotation[0].sampler].output)
-    return GlbAnimation(names, times, weights, rotations)
+        node = rotation[0].target.node
+    return GlbAnimation(names, times, weights, rotations, node)

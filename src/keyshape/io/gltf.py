@@ -55,7 +55,7 @@ from ._gltf_anim import (
     time_accessor,
     weights_output,
 )
-from ._gltf_nodes import find_eyes, find_head
+from ._gltf_nodes import find_eyes, find_head, parents, world_matrix, world_rotation
 from ._gltf_read import (
     ANIMATION_NAMES,
     GlbAnimation,
@@ -73,7 +73,7 @@ from .atomic import atomic_path
 from .validate import check_weight_values
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
-           "read_meshes", "read_colours", "eye_nodes", "check_gltf_file", "GlbAnimation", "Part"]
+           "read_meshes", "read_colours", "read_face_scene", "read_head_motion", "eye_nodes", "check_gltf_file", "GlbAnimation", "Part"]
 
 ANIMATION = ANIMATION_NAMES[0]
 
@@ -377,6 +377,76 @@ def read_colours(path, *, meshes=None) -> np.ndarray:
     """
     document, buffers = load_document(path, editable=False)
     return part_colours(document, buffers, _choose_meshes(document, meshes, path), path)
+
+
+def read_face_scene(path) -> tuple[Rig, np.ndarray]:
+    """What a picture of the character's face shows: its morph-target meshes and the still
+    meshes about them (hair, separate eyes, glasses), with their colours.
+
+    A mesh without morph targets joins when nine tenths of its vertices lie in the morph
+    meshes' bounding box grown by a quarter about its centre (the hair of a full-body avatar
+    does; its outfit and shoes do not).
+
+    Returns
+    -------
+    rig : Rig
+        The morph meshes as :func:`read_rig` reads them, then the still meshes' vertices
+        (their deltas zero), ``n_vertices`` in all.
+    colours : (n_vertices, 4) float
+        RGBA in [0, 1], as :func:`read_colours`.
+    """
+    document, buffers = load_document(path, editable=False)
+    morph = morph_meshes(document, path)
+    if not morph:
+        raise RigError(f"{str(path)!r} has no morph targets: it cannot be driven as a blendshape rig")
+    rig = read_parts(document, buffers, morph, path)[0]
+    lo, hi = rig.vertices.min(axis=0), rig.vertices.max(axis=0)
+    centre, reach = (lo + hi) / 2, (hi - lo) / 2 * 1.25 + 1e-9
+    still = []
+    for m in range(len(document.meshes)):
+        if m in morph:
+            continue
+        vertices = read_parts(document, buffers, [m], path)[0].vertices
+        if len(vertices) and (np.abs(vertices - centre) <= reach).all(axis=1).mean() >= 0.9:
+            still.append(m)
+    colours = part_colours(document, buffers, morph + still, path)
+    if not still:
+        return rig, colours
+    other = read_parts(document, buffers, still, path)[0]
+    deltas = np.concatenate([rig.deltas, np.zeros((rig.n_targets, other.n_vertices, 3))], axis=1)
+    merged = Rig(np.vstack([rig.vertices, other.vertices]), np.vstack([rig.faces, other.faces + rig.n_vertices]),
+                 deltas, rig.names)
+    return merged, colours
+
+
+def read_head_motion(path) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the head turns about and how, in the world: ``(pivot, rotations)``, or None.
+
+    From the first ``rotation`` channel of the animation :func:`read_glb_animation` reads (the
+    head's, in files keyshape writes): the node's stored local rotations ``L`` become the
+    world rotations ``D = P L Rᵀ Pᵀ`` (``P`` its parent's rest world rotation, ``R`` its own
+    rest rotation; the inverse of what the writers store), about the node's rest position.
+
+    Returns
+    -------
+    pivot : (3,) float
+        The turning node's rest world position (metres).
+    rotations : (n_frames, 3, 3) float
+        World rotations of the head, identity at rest.
+    """
+    from scipy.spatial.transform import Rotation
+
+    animation = read_glb_animation(path)
+    if animation.rotations is None or animation.node is None:
+        return None
+    document, _ = load_document(path, editable=False)
+    node = animation.node
+    p = world_rotation(document, parents(document).get(node))
+    rest = Rotation.from_quat(document.nodes[node].rotation or [0, 0, 0, 1]).as_matrix()
+    local = Rotation.from_quat(np.asarray(animation.rotations, dtype=float).reshape(-1, 4)).as_matrix()
+    # f: frame; D_f = P L_f R^T P^T
+    rotations = np.einsum("ij,fjk,lk,ml->fim", p, local, rest, p)
+    return world_matrix(document, node)[:3, 3].copy(), rotations
 
 
 def _choose_meshes(document, meshes, path) -> list[int]:
