@@ -55,7 +55,17 @@ from ._gltf_anim import (
     time_accessor,
     weights_output,
 )
-from ._gltf_nodes import find_eyes, find_head, parents, world_matrix, world_rotation
+from ._gltf_nodes import (
+    ancestry,
+    descendants,
+    find_eyes,
+    find_head,
+    head_joint,
+    is_head,
+    parents,
+    world_matrix,
+    world_rotation,
+)
 from ._gltf_read import (
     ANIMATION_NAMES,
     GlbAnimation,
@@ -64,6 +74,7 @@ from ._gltf_read import (
     mesh_matrices,
     morph_meshes,
     part_colours,
+    read_accessor,
     read_glb_animation,
     read_parts,
     read_rig,
@@ -73,7 +84,8 @@ from .atomic import atomic_path
 from .validate import check_weight_values
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
-           "read_meshes", "read_colours", "read_face_scene", "read_head_motion", "eye_nodes", "check_gltf_file", "GlbAnimation", "Part"]
+           "read_meshes", "read_colours", "read_face_scene", "read_head_motion", "head_mesh", "mesh_names",
+           "eye_nodes", "check_gltf_file", "GlbAnimation", "Part"]
 
 ANIMATION = ANIMATION_NAMES[0]
 
@@ -353,8 +365,9 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
     ----------
     path : str or Path
     meshes : sequence of int or str, optional, keyword-only
-        Mesh indices or names. Default: the meshes with morph targets, or every mesh when
-        none has any (a plain character to sculpt on).
+        Mesh indices or names. Default: the meshes with morph targets; when none has any (a
+        plain character to sculpt on or transfer onto), the head's mesh (:func:`head_mesh`), else
+        every mesh.
 
     Returns
     -------
@@ -365,7 +378,7 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
     parts : list of Part
     """
     document, buffers = load_document(path, editable=False)
-    chosen = _choose_meshes(document, meshes, path)
+    chosen = _choose_meshes(document, meshes, path, buffers)
     return read_parts(document, buffers, chosen, path)
 
 
@@ -376,7 +389,7 @@ def read_colours(path, *, meshes=None) -> np.ndarray:
     ``COLOR_0``, alpha mode): what the character looks like, for the renders that find its landmarks.
     """
     document, buffers = load_document(path, editable=False)
-    return part_colours(document, buffers, _choose_meshes(document, meshes, path), path)
+    return part_colours(document, buffers, _choose_meshes(document, meshes, path, buffers), path)
 
 
 def read_face_scene(path) -> tuple[Rig, np.ndarray]:
@@ -449,9 +462,62 @@ def read_head_motion(path) -> tuple[np.ndarray, np.ndarray] | None:
     return world_matrix(document, node)[:3, 3].copy(), rotations
 
 
-def _choose_meshes(document, meshes, path) -> list[int]:
+def mesh_names(path) -> list[str]:
+    """The name of every mesh of a glTF file, in order (its index where it has none): the values
+    ``meshes=`` (``--mesh``) takes."""
+    document, _ = load_document(path, editable=False)
+    return [m.name or str(i) for i, m in enumerate(document.meshes)]
+
+
+def head_mesh(path) -> str | None:
+    """The name of the mesh of a character's head, for a glTF file without morph targets; None
+    when none is found (or the file has morph targets: those meshes are the face).
+
+    Of a skinned character, the largest mesh (most vertices) at least half of whose vertices
+    follow the head joint (the skin joint named like ``head`` nearest the root) or a joint below
+    it (the eyes) most: a Ready Player Me avatar's ``Wolf3D_Head``, not its hair, outfit or
+    body. Of an unskinned one, the largest mesh under a node named like ``head``.
+    """
+    document, buffers = load_document(path, editable=False)
+    if morph_meshes(document, path):
+        return None
+    index = _head_mesh(document, buffers)
+    return None if index is None else document.meshes[index].name
+
+
+def _head_mesh(document, buffers) -> int | None:
+    parent_of = parents(document)
+    skinned = [n for n, node in enumerate(document.nodes) if node.mesh is not None and node.skin is not None]
+    shown = skinned or [n for n, node in enumerate(document.nodes) if node.mesh is not None]
+    size, best = 0, None
+    for n in shown:
+        node = document.nodes[n]
+        primitive = document.meshes[node.mesh].primitives[0]
+        count = read_accessor(document, buffers, primitive.attributes.POSITION).shape[0]
+        if node.skin is not None:
+            head = head_joint(document, [n], parent_of)
+            joints_at, weights_at = primitive.attributes.JOINTS_0, primitive.attributes.WEIGHTS_0
+            if head is None or joints_at is None or weights_at is None:
+                continue
+            joints = np.asarray(document.skins[node.skin].joints)
+            slots = read_accessor(document, buffers, joints_at).astype(int)
+            strongest = slots[np.arange(count), read_accessor(document, buffers, weights_at).argmax(axis=1)]
+            below = set(descendants(document, head))
+            held = np.isin(joints[np.clip(strongest, 0, len(joints) - 1)], list(below)).mean()
+        else:
+            held = float(any(is_head(document.nodes[a].name) for a in ancestry(n, parent_of)[1:]))
+        if held >= 0.5 and count > size:
+            size, best = count, node.mesh
+    return best
+
+
+def _choose_meshes(document, meshes, path, buffers=None) -> list[int]:
     if meshes is None:
-        return morph_meshes(document, path) or list(range(len(document.meshes)))
+        chosen = morph_meshes(document, path)
+        if not chosen and buffers is not None:
+            head = _head_mesh(document, buffers)
+            chosen = [] if head is None else [head]
+        return chosen or list(range(len(document.meshes)))
     names = [m.name for m in document.meshes]
     chosen = []
     for item in meshes:
@@ -497,7 +563,7 @@ def write_gltf_targets(source, path, rig: Rig, *, meshes=None) -> Path:
     path, source = Path(path), Path(source)
     _check_suffix(path)
     document, buffers = load_document(source)
-    chosen = _choose_meshes(document, meshes, source)
+    chosen = _choose_meshes(document, meshes, source, buffers)
     _, parts = read_parts(document, buffers, chosen, source)
     _check_layout(rig, parts, source)
     to_local = _to_local(document, parts, source)
