@@ -9,6 +9,8 @@ skip without them. The face is measured by MediaPipe itself, on the pixels a use
 from __future__ import annotations
 
 import io
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -114,3 +116,109 @@ def test_viewer_opens_on_the_face(browser, rpm_take):
     extent = _face_extent(shot)
     assert extent >= shot.shape[0] / 3, (extent, shot.shape)
     assert _chroma_spread(shot, background) > 0.03
+
+
+# --------------------------------------------------------------------------- 3: no blend shapes
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "keyshape", *map(str, args)], capture_output=True, text=True,
+                          timeout=900, check=False)  # callers check the exit code
+
+
+def _stripped(folder: Path, *, skins: bool = True) -> Path:
+    """A copy of the RPM avatar without its morph targets (and, ``skins=False``, without its skins:
+    nothing then says which mesh is the head), written in ``folder``."""
+    import pygltflib
+
+    document = pygltflib.GLTF2().load(str(RPM))
+    for mesh in document.meshes:
+        for primitive in mesh.primitives:
+            primitive.targets = []
+            if not skins:
+                primitive.attributes.JOINTS_0 = primitive.attributes.WEIGHTS_0 = None
+        mesh.weights = []
+        mesh.extras = {k: v for k, v in (mesh.extras or {}).items() if k != "targetNames"}
+    if not skins:
+        for node in document.nodes:
+            node.skin = None
+        document.skins = []
+    for accessor in document.accessors:  # pygltflib writes byteOffset 0 where there is no bufferView
+        if accessor.bufferView is None:
+            accessor.byteOffset = None
+    path = folder / ("bare.glb" if skins else "loose.glb")
+    document.save(str(path))
+    return path
+
+
+def _warning_codes(path: Path) -> set[str]:
+    from gltf_validator import validate
+
+    report = validate(path)
+    assert report["numErrors"] == 0, [m for m in report["messages"] if m["severity"] == 0][:5]
+    return {m["code"] for m in report["messages"] if m["severity"] == 1}
+
+
+@needs_rpm
+def test_propose_finds_the_head_mesh_of_an_avatar_without_blend_shapes(rpm_take, tmp_path):
+    """Item 3: propose onto the stripped avatar reads its head's mesh (it rendered the whole body and
+    MediaPipe found no face); the .glb written validates with no warning the input lacks."""
+    from keyshape.io.gltf import head_mesh, read_meshes
+    from keyshape.io.keys_json import load_keys
+
+    bare = _stripped(tmp_path)
+    assert head_mesh(bare) == "Wolf3D_Head"
+    assert head_mesh(RPM) is None  # its morph meshes are its face
+    keys = load_keys(rpm_take / "keys.json")
+    out = tmp_path / "proposed.glb"
+    result = _cli("propose", rpm_take / "keys.json", "--rig", bare, "-o", out)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == (
+        f"{out}: {keys.n_keys} proposed targets named after the keys on {bare} (2123 vertices); drive it "
+        f"with `keyshape retarget WEIGHTS.csv --rig {out}`")
+    rig = read_meshes(out, meshes=["Wolf3D_Head"])[0]
+    assert rig.names == keys.names and rig.n_vertices == 2123
+    assert np.abs(rig.deltas).max() > 1e-3  # the targets move the face
+    assert _warning_codes(out) <= _warning_codes(bare)
+
+
+@needs_rpm
+def test_run_transfers_onto_an_avatar_without_blend_shapes(demo_clip, tmp_path):
+    """Item 3: `run --rig X.glb --auto-targets` on the stripped avatar drives its head (it failed "has
+    no morph targets: it cannot be driven as a blendshape rig")."""
+    from keyshape.io.gltf import read_rig
+    from keyshape.io.keys_json import load_keys
+
+    bare = _stripped(tmp_path)
+    out = tmp_path / "take"
+    result = _cli("run", demo_clip, "--rig", bare, "--auto-targets", "--end", "30", "-o", out, "-q")
+    assert result.returncode == 0, result.stderr
+    rig = read_rig(out / "animation.glb")
+    assert rig.n_vertices == 2123 and set(load_keys(out / "keys.json").names) <= set(rig.names)
+    assert (out / "preview.mp4").is_file() and (out / "correspondence.json").is_file()
+    assert _warning_codes(out / "animation.glb") <= _warning_codes(bare)
+
+
+@needs_rpm
+def test_no_face_found_names_the_meshes_to_choose(rpm_take, demo_clip, tmp_path):
+    """Item 3: when nothing says which mesh is the head (no skin) and MediaPipe finds no face on the
+    whole body, propose and run name the file and its --mesh values in one line, write nothing, and
+    the mesh named works."""
+    loose = _stripped(tmp_path, skins=False)
+    expected = (
+        "keyshape: error: loose.glb: MediaPipe found no face on a front render of the character (facing +Z, -Y, "
+        "+Y, -Z, +X, -X tried; is it a human-like head?): pass --front AXIS (front=...) if its face looks along "
+        "another axis, or give the correspondence as a JSON file (--correspondence); or choose the face's mesh "
+        "with --mesh NAME, one of: EyeLeft, EyeRight, Wolf3D_Head, Wolf3D_Teeth, Wolf3D_Hair, Wolf3D_Beard, "
+        "Wolf3D_Outfit_Top, Wolf3D_Outfit_Bottom, Wolf3D_Outfit_Footwear, Mesh")
+    out = tmp_path / "proposed.glb"
+    result = _cli("propose", rpm_take / "keys.json", "--rig", loose, "-o", out)
+    assert (result.returncode, result.stderr.strip()) == (1, expected)
+    assert not out.exists()
+    take = tmp_path / "take"
+    result = _cli("run", demo_clip, "--rig", loose, "--auto-targets", "--end", "10", "-o", take, "-q")
+    assert (result.returncode, result.stderr.strip()) == (1, expected)
+    assert not take.exists()
+    result = _cli("propose", rpm_take / "keys.json", "--rig", loose, "--mesh", "Wolf3D_Head", "-o", out)
+    assert result.returncode == 0, result.stderr
+    assert _warning_codes(out) <= _warning_codes(loose)
