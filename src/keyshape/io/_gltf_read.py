@@ -60,15 +60,12 @@ class GlbAnimation(NamedTuple):
     rotations : (n_frames, 4) float or None
         Quaternions (x, y, z, w) of the animation's first ``rotation`` channel (the head's, in
         files keyshape writes), as stored (the node's local rotation), or None.
-    node : int or None
-        The node that channel turns.
     """
 
     names: tuple[str, ...]
     times: np.ndarray
     weights: np.ndarray
     rotations: np.ndarray | None
-    node: int | None = None
 
 
 class Part(NamedTuple):
@@ -547,11 +544,11 @@ def read_glb_animation(path, *, animation: str | int | None = None) -> GlbAnimat
         If the file has no such animation, or none with a ``weights`` channel.
     """
     document, buffers = load_document(path, editable=False)
-    chosen = _choose_animation(document, animation, path)
+    chosen = choose_animation(document, animation, path)
     return _read_animation(document, buffers, chosen)
 
 
-def _choose_animation(document, animation, path):
+def choose_animation(document, animation, path):
     animations = document.animations
     if isinstance(animation, int):
         if not 0 <= animation < len(animations):
@@ -584,8 +581,7 @@ def _read_animation(document, buffers, animation) -> GlbAnimation:
     names = tuple(columns)
     weights = np.stack([columns[n] for n in names], axis=1) if names else np.zeros((len(times), 0))
     rotation = [c for c in animation.channels if c.target.path == "rotation"]
-    rotations = node = None
+    rotations = None
     if rotation:
         rotations = read_accessor(document, buffers, animation.samplers[rotation[0].sampler].output)
-        node = rotation[0].target.node
-    return GlbAnimation(names, times, weights, rotations, node)
+    return GlbAnimation(names, times, weights, rotations)

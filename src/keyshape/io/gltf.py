@@ -70,6 +70,7 @@ from ._gltf_read import (
     ANIMATION_NAMES,
     GlbAnimation,
     Part,
+    choose_animation,
     load_document,
     mesh_matrices,
     morph_meshes,
@@ -450,10 +451,11 @@ def read_head_motion(path) -> tuple[np.ndarray, np.ndarray] | None:
     from scipy.spatial.transform import Rotation
 
     animation = read_glb_animation(path)
-    if animation.rotations is None or animation.node is None:
+    if animation.rotations is None:
         return None
     document, _ = load_document(path, editable=False)
-    node = animation.node
+    chosen = choose_animation(document, None, path)
+    node = next(c.target.node for c in chosen.channels if c.target.path == "rotation")
     p = world_rotation(document, parents(document).get(node))
     rest = Rotation.from_quat(document.nodes[node].rotation or [0, 0, 0, 1]).as_matrix()
     local = Rotation.from_quat(np.asarray(animation.rotations, dtype=float).reshape(-1, 4)).as_matrix()
