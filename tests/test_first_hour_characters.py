@@ -185,18 +185,35 @@ def test_propose_finds_the_head_mesh_of_an_avatar_without_blend_shapes(rpm_take,
 @needs_rpm
 def test_run_transfers_onto_an_avatar_without_blend_shapes(demo_clip, tmp_path):
     """Item 3: `run --rig X.glb --auto-targets` on the stripped avatar drives its head (it failed "has
-    no morph targets: it cannot be driven as a blendshape rig")."""
-    from keyshape.io.gltf import read_rig
+    no morph targets: it cannot be driven as a blendshape rig"), in the avatar's own file: its other
+    meshes and textures kept, the head joint turned."""
+    import av
+
+    from keyshape.io.gltf import load_document, mesh_names, read_rig
     from keyshape.io.keys_json import load_keys
 
     bare = _stripped(tmp_path)
     out = tmp_path / "take"
     result = _cli("run", demo_clip, "--rig", bare, "--auto-targets", "--end", "30", "-o", out, "-q")
     assert result.returncode == 0, result.stderr
-    rig = read_rig(out / "animation.glb")
-    assert rig.n_vertices == 2123 and set(load_keys(out / "keys.json").names) <= set(rig.names)
-    assert (out / "preview.mp4").is_file() and (out / "correspondence.json").is_file()
-    assert _warning_codes(out / "animation.glb") <= _warning_codes(bare)
+    glb = out / "animation.glb"
+    rig = read_rig(glb)
+    assert rig.n_vertices == 2123 and rig.names == load_keys(out / "keys.json").names
+    assert mesh_names(glb) == mesh_names(bare)
+    document, _ = load_document(glb, editable=False)
+    turned = {document.nodes[c.target.node].name for c in document.animations[0].channels
+              if c.target.path == "rotation"}
+    assert "Head" in turned
+    assert len(document.images) == len(load_document(bare, editable=False)[0].images) > 0
+    assert (out / "correspondence.json").is_file()
+    assert _warning_codes(glb) <= _warning_codes(bare)
+    with av.open(str(out / "preview.mp4")) as container:
+        frame = next(container.decode(video=0)).to_ndarray(format="rgb24")
+    pane = frame[:360, -360:]
+    assert _face_extent(pane) >= 120
+    label_free = pane.copy()
+    label_free[:30, :120] = BACKGROUND
+    assert _chroma_spread(label_free, BACKGROUND) > 0.03  # the avatar's textures
 
 
 @needs_rpm

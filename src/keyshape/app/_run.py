@@ -99,7 +99,9 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
 
         auto = auto_targets(keys, options.rig, correspondence=options.correspondence, front=options.front,
                             normalize=options.normalize, scores=scores, meshes=options.meshes)
-        return auto.rig, auto.mapping, auto.route == "mapping", auto, False
+        # transfer onto a glTF file: the new targets go into a copy of it, kept whole (textures, body)
+        onto_file = auto.route == "transfer" and Path(options.rig).suffix.lower() in (".glb", ".gltf")
+        return auto.rig, auto.mapping, auto.route == "mapping" or onto_file, auto, onto_file
     read = loaded if loaded is not None else load_rig(options.rig)
     if options.mapping is not None:
         return read, Mapping.from_file(options.mapping, targets=read.names), True, None, False
@@ -238,10 +240,10 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)  # map.json's "gaze"
     source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
-    if source is not None and remade:  # mirrored keys' targets made: the file gets them
+    if source is not None and remade:  # targets made (mirrored keys', or transferred): the file gets them
         from ..io.gltf import write_gltf_targets
 
-        source = write_gltf_targets(source, stage / ".character.glb", rig)
+        source = write_gltf_targets(source, stage / ".character.glb", rig, meshes=options.meshes)
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
     colours = None
     if options.rig is None:  # the stylised head: its colours, and its eyes turned by the gaze targets
