@@ -50,7 +50,8 @@ try {
       console.log(`  ${severity[m.severity] ?? m.severity} ${m.code} at ${m.pointer ?? "-"}: ${m.message}`);
     }
   }
-  process.exit(issues.numErrors > 0 ? 1 : 0);
+  // exitCode, not exit(): exit() would cut a long report still being written to a pipe (at 64 KiB)
+  process.exitCode = issues.numErrors > 0 ? 1 : 0;
 } catch (err) {
   console.error(`validator could not read ${fullpath}: ${err}`);
   process.exit(2);

@@ -3,7 +3,7 @@
 // at any time by sampling the glTF animation directly (the same interpolants and property
 // bindings three.js's AnimationMixer uses, without its looping and blending state).
 
-import { PropertyBinding } from 'three';
+import { Box3, PropertyBinding, Vector3 } from 'three';
 import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
 
 export class Character {
@@ -56,6 +56,35 @@ export class Character {
   setRotation(q) {
     this.head.quaternion.fromArray(q);
     this.scene.updateMatrixWorld(true);
+  }
+
+  /**
+   * The face's box in the world at rest: the vertices the morph targets move and every vertex
+   * near them (within 1.3 times the farthest moved one's distance from their centre), so a
+   * full-body avatar gives its head and hair, not its T-posed body.
+   */
+  faceBox() {
+    this.scene.updateMatrixWorld(true);
+    const moved = [];
+    const all = [];
+    this.scene.traverse((object) => {
+      if (!object.isMesh || !object.geometry.getAttribute('position')) return;
+      if (object.isSkinnedMesh) object.skeleton.update();
+      const morphs = object.geometry.morphAttributes.position || [];
+      const count = object.geometry.getAttribute('position').count;
+      for (let i = 0; i < count; i++) {
+        const point = object.getVertexPosition(i, new Vector3()).applyMatrix4(object.matrixWorld);
+        all.push(point);
+        if (morphs.some((m) => Math.abs(m.getX(i)) + Math.abs(m.getY(i)) + Math.abs(m.getZ(i)) > 1e-6)) {
+          moved.push(point);
+        }
+      }
+    });
+    const box = new Box3().setFromPoints(moved.length ? moved : all);
+    if (!moved.length) return box;
+    const centre = box.getCenter(new Vector3());
+    const reach = 1.3 * Math.max(...moved.map((p) => p.distanceTo(centre)));
+    return new Box3().setFromPoints(all.filter((p) => p.distanceTo(centre) <= reach));
   }
 
   /** Current influence of each morph target, in target order. */

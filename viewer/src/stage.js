@@ -1,4 +1,5 @@
-// Drawing the character: a WebGL renderer, a camera framed on the neutral face, soft lights
+// Drawing the character: a WebGL renderer, a camera framed on the neutral face (of a full-body
+// avatar too: Character.faceBox), soft lights
 // and orbit controls (drag to turn, wheel to zoom).
 
 import * as THREE from 'three';
@@ -17,20 +18,24 @@ export class Stage {
     this.scene.add(character.scene);
     this.camera = new THREE.PerspectiveCamera(30, 1, 0.001, 100);
     this.controls = new OrbitControls(this.camera, canvas);
-    this.frame(character.scene);
     this.resize();
+    this.frame(character.faceBox());
     new ResizeObserver(() => this.resize()).observe(canvas.parentElement);
   }
 
-  /** Put the whole object in view, seen from the front (+Z, glTF's "toward the viewer"). */
-  frame(object) {
-    const sphere = new THREE.Box3().setFromObject(object).getBoundingSphere(new THREE.Sphere());
-    const radius = sphere.radius || 1;
-    const distance = (1.15 * radius) / Math.sin(THREE.MathUtils.degToRad(this.camera.fov / 2));
-    this.camera.position.copy(sphere.center).add(new THREE.Vector3(0, 0, distance));
+  /**
+   * Put the whole box in view, seen from the front (+Z, glTF's "toward the viewer"): its height,
+   * or its width where the pane is narrower, fills the pane but for a margin.
+   */
+  frame(box) {
+    const size = box.getSize(new THREE.Vector3());
+    const centre = box.getCenter(new THREE.Vector3());
+    const half = 1.15 * Math.max(size.y / 2, size.x / 2 / this.camera.aspect, 1e-3);
+    const distance = half / Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2)) + size.z / 2;
+    this.camera.position.copy(centre).add(new THREE.Vector3(0, 0, distance));
     this.camera.near = distance / 100;
     this.camera.far = distance * 100;
-    this.controls.target.copy(sphere.center);
+    this.controls.target.copy(centre);
     this.controls.update();
   }
 

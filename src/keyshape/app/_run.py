@@ -57,6 +57,7 @@ class RunOptions:
     auto_targets: bool = False  # propose the rig's targets (or a mapping) for the keys
     correspondence: Path | None = None  # auto_targets: landmark -> mesh file (default: found)
     front: str = "auto"  # auto_targets: the axis the character's face looks along (default: looked for)
+    meshes: tuple | None = None  # auto_targets, glTF rig: the meshes to read (default: morph meshes, else the head's)
     normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
     refine: bool = True  # auto_targets, score mapping: refine the targets the scores barely see (render and compare)
     preview: bool = True
@@ -97,8 +98,10 @@ def _rig_and_mapping(options: RunOptions, keys: KeyShapes, scores=None, loaded: 
         from ..targets import auto_targets
 
         auto = auto_targets(keys, options.rig, correspondence=options.correspondence, front=options.front,
-                            normalize=options.normalize, scores=scores)
-        return auto.rig, auto.mapping, auto.route == "mapping", auto, False
+                            normalize=options.normalize, scores=scores, meshes=options.meshes)
+        # transfer onto a glTF file: the new targets go into a copy of it, kept whole (textures, body)
+        onto_file = auto.route == "transfer" and Path(options.rig).suffix.lower() in (".glb", ".gltf")
+        return auto.rig, auto.mapping, auto.route == "mapping" or onto_file, auto, onto_file
     read = loaded if loaded is not None else load_rig(options.rig)
     if options.mapping is not None:
         return read, Mapping.from_file(options.mapping, targets=read.names), True, None, False
@@ -158,9 +161,8 @@ def _read_inputs(options: RunOptions, video: Path, track: Track | None) -> tuple
     broken one fails in a second, not after minutes of work; check ``neutral`` against the frame
     range to track. Returns (the rig or None, the key set or None)."""
     from ..io.keys_json import load_keys
-    from ..io.rig import load_rig
 
-    rig = load_rig(options.rig) if options.rig is not None else None
+    rig = _read_rig(options) if options.rig is not None else None
     if options.mapping is not None and rig is not None and not options.auto_targets:
         from ..targets import Mapping
 
@@ -171,6 +173,20 @@ def _read_inputs(options: RunOptions, video: Path, track: Track | None) -> tuple
     if isinstance(options.neutral, int) and track is None and keys is None:
         _check_neutral_in_range(options, video)
     return rig, keys
+
+
+def _read_rig(options: RunOptions) -> Rig:
+    """The rig, read (and so checked) before the tracking; with ``auto_targets`` a glTF file without
+    morph targets is a neutral to transfer onto (its head's mesh: :func:`keyshape.io.gltf.read_meshes`)."""
+    path = Path(options.rig)
+    if options.auto_targets and path.suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import check_gltf_file, read_meshes
+
+        check_gltf_file(path)
+        return read_meshes(path, meshes=options.meshes)[0]
+    from ..io.rig import load_rig
+
+    return load_rig(path)
 
 
 def _check_drivable(rig: Rig, options: RunOptions, keys: KeyShapes | None) -> None:
@@ -224,10 +240,10 @@ def _write_outputs(stage: Path, video: Path, track, keys, solved, rig, mapping, 
     anim = drive_gaze(anim, mapping, track.blendshapes, track.blendshape_names)  # map.json's "gaze"
     source = options.rig if keep_file and options.rig is not None and options.rig.is_file() and \
         options.rig.suffix.lower() in (".glb", ".gltf") else None  # kept whole, animation added
-    if source is not None and remade:  # mirrored keys' targets made: the file gets them
+    if source is not None and remade:  # targets made (mirrored keys', or transferred): the file gets them
         from ..io.gltf import write_gltf_targets
 
-        source = write_gltf_targets(source, stage / ".character.glb", rig)
+        source = write_gltf_targets(source, stage / ".character.glb", rig, meshes=options.meshes)
     eyes = solved.gaze.rotations() if solved.gaze is not None else None
     colours = None
     if options.rig is None:  # the stylised head: its colours, and its eyes turned by the gaze targets

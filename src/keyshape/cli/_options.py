@@ -156,7 +156,7 @@ def add_rig_options(p, *, meshes: str | None = None) -> None:
     if meshes:
         p.add_argument("--mesh", action="append", default=None, metavar="NAME",
                        help=f"glTF mesh(es) {meshes} (repeatable; default: the meshes with morph targets, "
-                            "else all)")
+                            "else the head's mesh, else all)")
 
 
 def mesh_choice(names: list[str] | None) -> list[int | str] | None:

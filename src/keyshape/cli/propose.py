@@ -59,10 +59,17 @@ def run(args) -> None:
         from ..io.gltf import read_colours
 
         colours = read_colours(source, meshes=mesh_choice(args.mesh))
-    if route == "mapping":
-        _propose_mapping(args, keys, character, colours)
-    else:
-        _propose_targets(args, keys, character, source, colours)
+    from ..targets import NoFaceFound, no_face_on
+
+    try:
+        if route == "mapping":
+            _propose_mapping(args, keys, character, colours)
+        else:
+            _propose_targets(args, keys, character, source, colours)
+    except NoFaceFound as error:
+        if args.rig is None:
+            raise
+        raise no_face_on(error, args.rig, mesh_choice(args.mesh)) from None
 
 
 def _route(output: Path) -> str:

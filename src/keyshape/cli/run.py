@@ -13,6 +13,7 @@ from ._options import (
     add_visibility_option,
     capture_kwargs,
     describe_keys,
+    mesh_choice,
     progress,
     say,
     shell_command,
@@ -53,6 +54,9 @@ def add_arguments(p) -> None:
                         "docs/auto-targets.md. Also writes the correspondence used (and, for such a rig, "
                         "map.json) to OUTDIR, to edit and pass back")
     add_correspondence_option(p, when="with --auto-targets: ")
+    p.add_argument("--mesh", action="append", default=None, metavar="NAME",
+                   help="with --auto-targets on a .glb/.gltf: the mesh(es) to propose targets on (repeatable; "
+                        "default: the meshes with morph targets, else the head's mesh, else all)")
     add_normalize_option(p, when="with --auto-targets on a rig with its own blendshapes: ")
     p.add_argument("--no-refine", dest="refine", action="store_false",
                    help="with --auto-targets on an ARKit rig: skip render and compare (the character rendered "
@@ -83,8 +87,9 @@ def add_format_option(p) -> None:
 
 def check(parser, args) -> None:
     """Usage errors argparse cannot see (exit code 2); fills in the default output folder."""
-    if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine):
-        parser.error("--correspondence, --front, --normalize and --no-refine only apply with --auto-targets")
+    if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine
+                                  or args.mesh):
+        parser.error("--correspondence, --front, --normalize, --no-refine and --mesh only apply with --auto-targets")
     if is_track_file(args.video):
         parser.error(track_file_message(args.video))
     if args.output is None:
@@ -117,6 +122,7 @@ def run(args) -> None:
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          mirror=args.mirror, neutral=args.neutral, auto_targets=args.auto_targets,
                          correspondence=args.correspondence, front=args.front, normalize=args.normalize,
+                         meshes=None if args.mesh is None else tuple(mesh_choice(args.mesh)),
                          refine=args.refine, capture=capture_kwargs(args), preview=not args.no_preview,
                          formats=tuple(args.formats),
                          **solve_kwargs(args))

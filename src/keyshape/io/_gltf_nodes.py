@@ -49,7 +49,7 @@ def find_head(document: pygltflib.GLTF2, face_nodes: list[int], *, name: str | N
     joints = {j for skin in document.skins for j in skin.joints}
     skinned = [n for n in face_nodes if document.nodes[n].skin is not None]
     if skinned:
-        return _head_joint(document, skinned, parent_of)
+        return head_joint(document, skinned, parent_of)
     common = _common_ancestors(face_nodes, parent_of)
     heads = [n for n in common if is_head(document.nodes[n].name)]
     ranked = [n for n in heads if n in joints] + [n for n in heads if n not in joints]
@@ -72,7 +72,7 @@ def find_eyes(document: pygltflib.GLTF2, head: int | None, *, names: tuple[str, 
             named = sorted({n.name for n in document.nodes if n.name})
             raise RigError(f"no eye nodes named {list(names)}; nodes: {named[:40]}")
         return found[0], found[1]
-    pool = _descendants(document, head) if head is not None else range(len(document.nodes))
+    pool = descendants(document, head) if head is not None else range(len(document.nodes))
     joints = {j for skin in document.skins for j in skin.joints}
     sides = []
     for side in ("left", "right"):
@@ -94,7 +94,7 @@ def _is_eye(name, side: str) -> bool:
     return (side in lowered or bool(letter)) and other not in lowered
 
 
-def _descendants(document, node: int) -> list[int]:
+def descendants(document, node: int) -> list[int]:
     out, stack = [], [node]
     while stack:
         current = stack.pop()
@@ -107,7 +107,7 @@ def is_head(name) -> bool:
     return bool(name) and bool(_HEAD.search(name)) and not _NOT_HEAD.search(name)
 
 
-def _head_joint(document, skinned, parent_of) -> int | None:
+def head_joint(document, skinned, parent_of) -> int | None:
     joints = {j for n in skinned for j in document.skins[document.nodes[n].skin].joints}
     heads = [j for j in joints if is_head(document.nodes[j].name)]
     return min(heads, key=lambda j: (_depth(j, parent_of), j)) if heads else None
@@ -120,7 +120,7 @@ def _depth(node: int, parent_of: dict[int, int]) -> int:
     return depth
 
 
-def _ancestry(node: int, parent_of: dict[int, int]) -> list[int]:
+def ancestry(node: int, parent_of: dict[int, int]) -> list[int]:
     chain = [node]
     while chain[-1] in parent_of:
         chain.append(parent_of[chain[-1]])
@@ -129,7 +129,7 @@ def _ancestry(node: int, parent_of: dict[int, int]) -> list[int]:
 
 def _common_ancestors(nodes: list[int], parent_of: dict[int, int]) -> list[int]:
     """Ancestors-or-self shared by every node, nearest first."""
-    chains = [_ancestry(n, parent_of) for n in nodes]
+    chains = [ancestry(n, parent_of) for n in nodes]
     shared = set(chains[0]).intersection(*chains[1:])
     return [n for n in chains[0] if n in shared]
 
@@ -150,7 +150,7 @@ def world_matrix(document: pygltflib.GLTF2, node: int | None, parent_of: dict[in
     (identity for None). ``parent_of`` (from :func:`parents`) saves recomputing it."""
     parent_of = parents(document) if parent_of is None else parent_of
     matrix = np.eye(4)
-    chain = [] if node is None else _ancestry(node, parent_of)
+    chain = [] if node is None else ancestry(node, parent_of)
     for index in reversed(chain):
         matrix = matrix @ local_matrix(document.nodes[index])
     return matrix

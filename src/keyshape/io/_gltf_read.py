@@ -544,11 +544,11 @@ def read_glb_animation(path, *, animation: str | int | None = None) -> GlbAnimat
         If the file has no such animation, or none with a ``weights`` channel.
     """
     document, buffers = load_document(path, editable=False)
-    chosen = _choose_animation(document, animation, path)
+    chosen = choose_animation(document, animation, path)
     return _read_animation(document, buffers, chosen)
 
 
-def _choose_animation(document, animation, path):
+def choose_animation(document, animation, path):
     animations = document.animations
     if isinstance(animation, int):
         if not 0 <= animation < len(animations):

@@ -55,15 +55,27 @@ from ._gltf_anim import (
     time_accessor,
     weights_output,
 )
-from ._gltf_nodes import find_eyes, find_head
+from ._gltf_nodes import (
+    ancestry,
+    descendants,
+    find_eyes,
+    find_head,
+    head_joint,
+    is_head,
+    parents,
+    world_matrix,
+    world_rotation,
+)
 from ._gltf_read import (
     ANIMATION_NAMES,
     GlbAnimation,
     Part,
+    choose_animation,
     load_document,
     mesh_matrices,
     morph_meshes,
     part_colours,
+    read_accessor,
     read_glb_animation,
     read_parts,
     read_rig,
@@ -73,7 +85,8 @@ from .atomic import atomic_path
 from .validate import check_weight_values
 
 __all__ = ["write_glb", "animate_gltf", "write_gltf_targets", "read_glb_animation", "read_rig",
-           "read_meshes", "read_colours", "eye_nodes", "check_gltf_file", "GlbAnimation", "Part"]
+           "read_meshes", "read_colours", "read_face_scene", "read_head_motion", "head_mesh", "mesh_names",
+           "eye_nodes", "check_gltf_file", "GlbAnimation", "Part"]
 
 ANIMATION = ANIMATION_NAMES[0]
 
@@ -353,8 +366,9 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
     ----------
     path : str or Path
     meshes : sequence of int or str, optional, keyword-only
-        Mesh indices or names. Default: the meshes with morph targets, or every mesh when
-        none has any (a plain character to sculpt on).
+        Mesh indices or names. Default: the meshes with morph targets; when none has any (a
+        plain character to sculpt on or transfer onto), the head's mesh (:func:`head_mesh`), else
+        every mesh.
 
     Returns
     -------
@@ -365,7 +379,7 @@ def read_meshes(path, *, meshes=None) -> tuple[Rig, list[Part]]:
     parts : list of Part
     """
     document, buffers = load_document(path, editable=False)
-    chosen = _choose_meshes(document, meshes, path)
+    chosen = _choose_meshes(document, meshes, path, buffers)
     return read_parts(document, buffers, chosen, path)
 
 
@@ -376,12 +390,136 @@ def read_colours(path, *, meshes=None) -> np.ndarray:
     ``COLOR_0``, alpha mode): what the character looks like, for the renders that find its landmarks.
     """
     document, buffers = load_document(path, editable=False)
-    return part_colours(document, buffers, _choose_meshes(document, meshes, path), path)
+    return part_colours(document, buffers, _choose_meshes(document, meshes, path, buffers), path)
 
 
-def _choose_meshes(document, meshes, path) -> list[int]:
+def read_face_scene(path) -> tuple[Rig, np.ndarray]:
+    """What a picture of the character's face shows: its morph-target meshes and the still
+    meshes about them (hair, separate eyes, glasses), with their colours.
+
+    A mesh without morph targets joins when nine tenths of its vertices lie in the morph
+    meshes' bounding box grown by a quarter about its centre (the hair of a full-body avatar
+    does; its outfit and shoes do not).
+
+    Returns
+    -------
+    rig : Rig
+        The morph meshes as :func:`read_rig` reads them, then the still meshes' vertices
+        (their deltas zero), ``n_vertices`` in all.
+    colours : (n_vertices, 4) float
+        RGBA in [0, 1], as :func:`read_colours`.
+    """
+    document, buffers = load_document(path, editable=False)
+    morph = morph_meshes(document, path)
+    if not morph:
+        raise RigError(f"{str(path)!r} has no morph targets: it cannot be driven as a blendshape rig")
+    rig = read_parts(document, buffers, morph, path)[0]
+    lo, hi = rig.vertices.min(axis=0), rig.vertices.max(axis=0)
+    centre, reach = (lo + hi) / 2, (hi - lo) / 2 * 1.25 + 1e-9
+    still = []
+    for m in range(len(document.meshes)):
+        if m in morph:
+            continue
+        vertices = read_parts(document, buffers, [m], path)[0].vertices
+        if len(vertices) and (np.abs(vertices - centre) <= reach).all(axis=1).mean() >= 0.9:
+            still.append(m)
+    colours = part_colours(document, buffers, morph + still, path)
+    if not still:
+        return rig, colours
+    other = read_parts(document, buffers, still, path)[0]
+    deltas = np.concatenate([rig.deltas, np.zeros((rig.n_targets, other.n_vertices, 3))], axis=1)
+    merged = Rig(np.vstack([rig.vertices, other.vertices]), np.vstack([rig.faces, other.faces + rig.n_vertices]),
+                 deltas, rig.names)
+    return merged, colours
+
+
+def read_head_motion(path) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the head turns about and how, in the world: ``(pivot, rotations)``, or None.
+
+    From the first ``rotation`` channel of the animation :func:`read_glb_animation` reads (the
+    head's, in files keyshape writes): the node's stored local rotations ``L`` become the
+    world rotations ``D = P L Rᵀ Pᵀ`` (``P`` its parent's rest world rotation, ``R`` its own
+    rest rotation; the inverse of what the writers store), about the node's rest position.
+
+    Returns
+    -------
+    pivot : (3,) float
+        The turning node's rest world position (metres).
+    rotations : (n_frames, 3, 3) float
+        World rotations of the head, identity at rest.
+    """
+    from scipy.spatial.transform import Rotation
+
+    animation = read_glb_animation(path)
+    if animation.rotations is None:
+        return None
+    document, _ = load_document(path, editable=False)
+    chosen = choose_animation(document, None, path)
+    node = next(c.target.node for c in chosen.channels if c.target.path == "rotation")
+    p = world_rotation(document, parents(document).get(node))
+    rest = Rotation.from_quat(document.nodes[node].rotation or [0, 0, 0, 1]).as_matrix()
+    local = Rotation.from_quat(np.asarray(animation.rotations, dtype=float).reshape(-1, 4)).as_matrix()
+    # f: frame; D_f = P L_f R^T P^T
+    rotations = np.einsum("ij,fjk,lk,ml->fim", p, local, rest, p)
+    return world_matrix(document, node)[:3, 3].copy(), rotations
+
+
+def mesh_names(path) -> list[str]:
+    """The name of every mesh of a glTF file, in order (its index where it has none): the values
+    ``meshes=`` (``--mesh``) takes."""
+    document, _ = load_document(path, editable=False)
+    return [m.name or str(i) for i, m in enumerate(document.meshes)]
+
+
+def head_mesh(path) -> str | None:
+    """The name of the mesh of a character's head, for a glTF file without morph targets; None
+    when none is found (or the file has morph targets: those meshes are the face).
+
+    Of a skinned character, the largest mesh (most vertices) at least half of whose vertices
+    follow the head joint (the skin joint named like ``head`` nearest the root) or a joint below
+    it (the eyes) most: a Ready Player Me avatar's ``Wolf3D_Head``, not its hair, outfit or
+    body. Of an unskinned one, the largest mesh under a node named like ``head``.
+    """
+    document, buffers = load_document(path, editable=False)
+    if morph_meshes(document, path):
+        return None
+    index = _head_mesh(document, buffers)
+    return None if index is None else document.meshes[index].name
+
+
+def _head_mesh(document, buffers) -> int | None:
+    parent_of = parents(document)
+    skinned = [n for n, node in enumerate(document.nodes) if node.mesh is not None and node.skin is not None]
+    shown = skinned or [n for n, node in enumerate(document.nodes) if node.mesh is not None]
+    size, best = 0, None
+    for n in shown:
+        node = document.nodes[n]
+        primitive = document.meshes[node.mesh].primitives[0]
+        count = read_accessor(document, buffers, primitive.attributes.POSITION).shape[0]
+        if node.skin is not None:
+            head = head_joint(document, [n], parent_of)
+            joints_at, weights_at = primitive.attributes.JOINTS_0, primitive.attributes.WEIGHTS_0
+            if head is None or joints_at is None or weights_at is None:
+                continue
+            joints = np.asarray(document.skins[node.skin].joints)
+            slots = read_accessor(document, buffers, joints_at).astype(int)
+            strongest = slots[np.arange(count), read_accessor(document, buffers, weights_at).argmax(axis=1)]
+            below = set(descendants(document, head))
+            held = np.isin(joints[np.clip(strongest, 0, len(joints) - 1)], list(below)).mean()
+        else:
+            held = float(any(is_head(document.nodes[a].name) for a in ancestry(n, parent_of)[1:]))
+        if held >= 0.5 and count > size:
+            size, best = count, node.mesh
+    return best
+
+
+def _choose_meshes(document, meshes, path, buffers=None) -> list[int]:
     if meshes is None:
-        return morph_meshes(document, path) or list(range(len(document.meshes)))
+        chosen = morph_meshes(document, path)
+        if not chosen and buffers is not None:
+            head = _head_mesh(document, buffers)
+            chosen = [] if head is None else [head]
+        return chosen or list(range(len(document.meshes)))
     names = [m.name for m in document.meshes]
     chosen = []
     for item in meshes:
@@ -427,7 +565,7 @@ def write_gltf_targets(source, path, rig: Rig, *, meshes=None) -> Path:
     path, source = Path(path), Path(source)
     _check_suffix(path)
     document, buffers = load_document(source)
-    chosen = _choose_meshes(document, meshes, source)
+    chosen = _choose_meshes(document, meshes, source, buffers)
     _, parts = read_parts(document, buffers, chosen, source)
     _check_layout(rig, parts, source)
     to_local = _to_local(document, parts, source)

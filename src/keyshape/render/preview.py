@@ -36,7 +36,7 @@ from .draw import (
 )
 from .encode import VideoWriter
 
-__all__ = ["render_preview", "rotations_from_quaternions"]
+__all__ = ["render_preview", "rotations_from_quaternions", "face_vertices"]
 
 def rotations_from_quaternions(quaternions: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(n_frames, 3, 3)`` of unit quaternions ``(n_frames, 4)`` (x, y, z, w)."""
@@ -49,7 +49,8 @@ def rotations_from_quaternions(quaternions: np.ndarray) -> np.ndarray:
 def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None,
                    keys: KeyShapes | None = None, rig_weights: np.ndarray | None = None,
                    rotations: np.ndarray | None = None, height: int | None = None, strip_height: int = 96,
-                   backend: str = "auto", progress: bool = False, colours: np.ndarray | None = None) -> Path:
+                   backend: str = "auto", progress: bool = False, colours: np.ndarray | None = None,
+                   pivot: np.ndarray | None = None) -> Path:
     """Write the preview MP4: source + landmarks | character, over a strip of the weights.
 
     Parameters
@@ -79,6 +80,11 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     progress : bool, keyword-only
     colours : (n_vertices, 3) float in [0, 1], optional, keyword-only
         The character's colour per vertex (default: clay).
+    pivot : (3,) float, optional, keyword-only
+        The point the head turns about (a full-body avatar's head joint); default the origin.
+
+    The camera frames the face: the vertices the targets move and the rest of the mesh near
+    them (a full-body avatar's head and hair, not its body).
 
     Returns
     -------
@@ -97,7 +103,7 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
     canvas = np.zeros((height + strip.height, width, 3), np.uint8)
     with (
         atomic_path(path) as tmp,
-        _CharacterView(rig, driving, rotations, height, backend, colours) as character,
+        _CharacterView(rig, driving, rotations, height, backend, colours, pivot) as character,
         VideoWriter(tmp, width, height + strip.height, track.fps) as out,
     ):
         frames = _with_first(first, sources)
@@ -107,6 +113,25 @@ def render_preview(track: Track, weights: Weights, rig: Rig, path, *, video=None
             canvas[height:] = strip.draw(weights.values[index])
             out.write(canvas)
     return Path(path)
+
+
+def face_vertices(rig: Rig) -> np.ndarray:
+    """Indices of the rig's face: the vertices its targets move and those near them.
+
+    "Near" is within 1.3 times the farthest moved vertex's distance from the moved vertices'
+    centre: a head's cranium, hair and eyes, not the body of a full-body avatar. Every vertex
+    when no target moves any.
+
+    Returns
+    -------
+    (n_face,) int
+    """
+    moved = np.abs(rig.deltas).max(axis=(0, 2)) > 1e-6 if rig.n_targets else np.zeros(rig.n_vertices, bool)
+    if not moved.any():
+        return np.arange(rig.n_vertices)
+    centre = (rig.vertices[moved].min(axis=0) + rig.vertices[moved].max(axis=0)) / 2
+    distance = np.linalg.norm(rig.vertices - centre, axis=1)
+    return np.flatnonzero(distance <= 1.3 * distance[moved].max())
 
 
 def _check_inputs(track, weights, rig, rig_weights, rotations) -> np.ndarray:
@@ -277,21 +302,23 @@ def _contour_edges(n_landmarks: int) -> np.ndarray | None:
 
 
 class _CharacterView:
-    """Renders the rig posed at frame ``index`` from a fixed camera framing the whole take."""
+    """Renders the rig posed at frame ``index`` from a fixed camera framing its face over the take."""
 
     def __init__(self, rig: Rig, weights: np.ndarray, rotations: np.ndarray, size: int, backend: str,
-                 colours: np.ndarray | None = None):
+                 colours: np.ndarray | None = None, pivot: np.ndarray | None = None):
         self.rig, self.weights, self.rotations = rig, weights, rotations
-        self.camera = frame_points(self._pose(np.linspace(0, len(weights) - 1, 48).astype(int)),
-                                   fov_deg=25.0, margin=1.12)
+        self.pivot = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=float).reshape(3)
+        face = face_vertices(rig)
+        sampled = self._pose(np.linspace(0, len(weights) - 1, 48).astype(int))
+        self.camera = frame_points(sampled[:, face], fov_deg=25.0, margin=1.12)
         self.renderer = make_renderer(rig.faces, size, size, n_vertices=rig.n_vertices, backend=backend,
                                       colours=colours)
 
     def _pose(self, frames: np.ndarray) -> np.ndarray:
         """Posed and rotated vertices ``(len(frames), n_vertices, 3)``."""
-        posed = self.rig.pose(self.weights[frames])
-        # f: frame, i/j: axis, v: vertex — the node rotation of the glTF head, about its origin
-        return np.einsum("fij,fvj->fvi", self.rotations[frames], posed)
+        posed = self.rig.pose(self.weights[frames]) - self.pivot
+        # f: frame, i/j: axis, v: vertex — the head's rotation, about its pivot
+        return np.einsum("fij,fvj->fvi", self.rotations[frames], posed) + self.pivot
 
     def __call__(self, index: int) -> np.ndarray:
         image = self.renderer.render(self._pose(np.array([index]))[0], self.camera)

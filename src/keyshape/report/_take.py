@@ -288,38 +288,39 @@ def write_take_preview(outdir, path=None, *, progress: bool = True, backend: str
 
 def _preview(outdir: Path, take: _Take, *, path=None, progress: bool, backend: str,
              height: int | None = None) -> Path | None:
-    from ..io.gltf import read_glb_animation, read_rig
+    from ..io.gltf import read_glb_animation, read_head_motion
     from ..io.validate import check_glb
-    from ..render.preview import render_preview, rotations_from_quaternions
+    from ..render.preview import render_preview
 
     glb = outdir / take.info["files"].get("animation", "animation.glb")
     if not glb.is_file():
         return None
     check_glb(glb)
     try:
-        rig, animation = read_rig(glb), read_glb_animation(glb)
+        (rig, colours), animation, motion = _face_scene(glb), read_glb_animation(glb), read_head_motion(glb)
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"{glb}: a damaged .glb ({exc.__class__.__name__}: {exc})") from None
     order = [animation.names.index(n) for n in rig.names] if animation.names else list(range(rig.n_targets))
-    rotations = None if animation.rotations is None else rotations_from_quaternions(animation.rotations)
+    pivot, rotations = (None, None) if motion is None else motion
     return render_preview(take.track, take.weights, rig, path or outdir / "preview.mp4", video=take.video,
                           keys=take.keys, rig_weights=animation.weights[:, order], rotations=rotations,
-                          height=height, backend=backend, progress=progress, colours=_vertex_colours(glb, rig))
+                          height=height, backend=backend, progress=progress, colours=colours, pivot=pivot)
 
 
-def _vertex_colours(glb: Path, rig) -> np.ndarray | None:
-    """sRGB colours ``(n_vertices, 3)`` of a .glb whose mesh carries ``COLOR_0`` (the built-in head's), else None."""
-    from ..io.gltf import load_document, read_colours
+def _face_scene(glb: Path) -> tuple:
+    """The character's face as the preview draws it: a rig (the morph meshes and the still ones
+    about them, such as the hair) and its sRGB colours ``(n_vertices, 3)`` (textures sampled at
+    the vertices; ``COLOR_0``, which glTF stores linear, encoded)."""
+    from ..io.gltf import load_document, read_face_scene
 
     document, _ = load_document(glb, editable=False)
-    if not any(getattr(p.attributes, "COLOR_0", None) is not None for m in document.meshes for p in m.primitives):
-        return None
-    linear = read_colours(glb)[:, :3]
-    if linear.shape != (rig.n_vertices, 3):
-        return None
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.clip(linear, 0, 1) ** (1 / 2.4) - 0.055)
+    rig, rgba = read_face_scene(glb)
+    colours = rgba[:, :3]
+    if any(getattr(p.attributes, "COLOR_0", None) is not None for m in document.meshes for p in m.primitives):
+        colours = np.where(colours <= 0.0031308, 12.92 * colours, 1.055 * np.clip(colours, 0, 1) ** (1 / 2.4) - 0.055)
+    return rig, colours
 
 
 def _neutral_picture(take: _Take):

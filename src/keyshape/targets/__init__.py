@@ -17,7 +17,7 @@
 
 from ._character import GAZE_NAMES, Character, canonical_face, gaze_weights, stylised_head, with_gaze_targets
 from ._correspond import Correspondence, correspondence_from_dict, read_correspondence
-from ._correspond_auto import find_correspondence
+from ._correspond_auto import NoFaceFound, find_correspondence
 from ._mapping import Mapping, drive_gaze, retarget
 from ._mirrored import complete_mirrors, mirror_sources
 from ._propose import (
@@ -26,6 +26,7 @@ from ._propose import (
     auto_targets,
     default_character,
     gaze_channels,
+    no_face_on,
     propose_mapping,
     propose_targets,
     proposer,
@@ -40,5 +41,6 @@ __all__ = ["Mapping", "retarget", "drive_gaze", "complete_mirrors", "mirror_sour
            "refine_mapping", "refinable_targets", "Refinement", "REFINED_SCORES",
            "LandmarkMotion", "landmark_motion", "transfer_expressions", "feature_groups", "spread",
            "Correspondence", "find_correspondence", "read_correspondence", "correspondence_from_dict",
+           "NoFaceFound", "no_face_on",
            "Character", "stylised_head", "canonical_face", "default_character", "with_gaze_targets",
            "gaze_weights", "GAZE_NAMES"]

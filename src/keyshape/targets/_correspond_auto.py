@@ -21,6 +21,10 @@ __all__ = ["find_correspondence", "view_rotation", "FRONTS"]
 _VIEWS = (("+z", "+y"), ("-y", "+z"), ("+y", "+z"), ("-z", "+y"), ("+x", "+y"), ("-x", "+y"))
 
 
+class NoFaceFound(RigError):
+    """MediaPipe found no face on any front render of the character."""
+
+
 def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 640,
                         backend: str = "auto", front: str = "auto",
                         colours: np.ndarray | None = None) -> Correspondence:
@@ -76,7 +80,7 @@ def find_correspondence(vertices: np.ndarray, faces: np.ndarray, *, size: int = 
             break
     else:
         tried = ", ".join(axis.upper() for axis, _ in views)
-        raise RigError(f"MediaPipe found no face on a front render of the character (facing {tried} tried; is it "
+        raise NoFaceFound(f"MediaPipe found no face on a front render of the character (facing {tried} tried; is it "
                        "a human-like head?): pass --front AXIS (front=...) if its face looks along another "
                        "axis, or give the correspondence as a JSON file (--correspondence)")
     vertices = vertices_turned

@@ -43,7 +43,7 @@ from ..containers import KeyShapes, Rig
 from ..exceptions import InputError, RigError
 from ._character import stylised_head
 from ._correspond import Correspondence, read_correspondence
-from ._correspond_auto import find_correspondence
+from ._correspond_auto import NoFaceFound, find_correspondence
 from ._head_parts import JAW_LANDMARKS, jaw_deltas
 from ._mapping import SMALLEST_GAIN, Mapping, bounded_row
 from ._transfer import landmark_motion, spread, transfer_expressions
@@ -515,7 +515,7 @@ class AutoTargets:
 def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route = "auto",
                  unit: float = 1.0, falloff: float = 1.0, normalize: bool = False,
                  scores: KeyScores | None = None, front: str = "auto",
-                 colours: np.ndarray | None = None) -> AutoTargets:
+                 colours: np.ndarray | None = None, meshes=None) -> AutoTargets:
     """Propose the character's targets for ``keys`` in one call.
 
     Parameters
@@ -540,6 +540,9 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
     colours : (n_vertices, 3) float, optional, keyword-only
         The character's base colours for that render; default: read from a glTF rig path's
         materials (:func:`keyshape.io.gltf.read_colours`), else clay.
+    meshes : sequence of int or str, optional, keyword-only
+        Of a glTF rig path: the meshes to read (see :func:`keyshape.io.gltf.read_meshes`; by
+        default its morph-target meshes, else its head's mesh, else all).
     scores : KeyScores or None, keyword-only
         Mapping route: the tracker's ARKit scores at the key frames (see :func:`propose_mapping`).
         Gaze targets (``eyeLook*``) are never mapped from keys: the mapping's ``gaze`` entries
@@ -560,7 +563,7 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
     """
     if route not in ("auto", "transfer", "mapping"):
         raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
-    character, corr, rigid = _character(keys, rig, correspondence, unit, front, colours)
+    character, corr, rigid = _character(keys, rig, correspondence, unit, front, colours, meshes)
     if route == "mapping" or (route == "auto" and character.n_targets > 0):
         # gaze targets are not mapped from keys: they follow their scores (gaze_channels), or the
         # irises turn the eyes' own nodes of a glTF rig that has them
@@ -585,33 +588,54 @@ def _eyes_on_nodes(rig) -> bool:
 
 
 def _character(keys: KeyShapes, rig, correspondence, unit: float, front: str,
-               colours=None) -> tuple[Rig, Correspondence, tuple]:
+               colours=None, meshes=None) -> tuple[Rig, Correspondence, tuple]:
     """The character, its correspondence and its rigid parts."""
     if rig is None:
         head = stylised_head()
         corr = head.correspondence(keys.n_landmarks) if correspondence is None else correspondence
         return head.rig, resolve_correspondence(corr, head.rig, keys.n_landmarks), ()
-    if isinstance(rig, (str, Path)):
-        colours = _colours(Path(rig)) if colours is None else colours
-        rig = _load(Path(rig), unit)
-    return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front, colours=colours), ()
+    if not isinstance(rig, (str, Path)):
+        return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front, colours=colours), ()
+    path = Path(rig)
+    colours = _colours(path, meshes) if colours is None else colours
+    rig = _load(path, unit, meshes)
+    try:
+        return rig, resolve_correspondence(correspondence, rig, keys.n_landmarks, front=front, colours=colours), ()
+    except NoFaceFound as error:
+        raise no_face_on(error, path, meshes) from None
 
 
-def _colours(path: Path) -> np.ndarray | None:
+def no_face_on(error: NoFaceFound, path, meshes=None) -> NoFaceFound:
+    """``error`` said of the character file ``path``, naming, for a glTF file of several meshes
+    read whole (``meshes`` None), the ``--mesh`` values to choose its face's mesh from."""
+    path = Path(path)
+    hint = ""
+    if meshes is None and path.suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import mesh_names
+
+        names = mesh_names(path)
+        if len(names) > 1:
+            hint = f"; or choose the face's mesh with --mesh NAME, one of: {', '.join(names)}"
+    return NoFaceFound(f"{path.name}: {error}{hint}")
+
+
+def _colours(path: Path, meshes=None) -> np.ndarray | None:
     """The base colours of a glTF character's vertices (as :func:`_load` reads it); None for other files."""
     if path.suffix.lower() not in (".glb", ".gltf"):
         return None
     from ..io.gltf import read_colours
 
-    return read_colours(path)
+    return read_colours(path, meshes=meshes)
 
 
-def _load(path: Path, unit: float) -> Rig:
-    """A rig from a path; a glTF file without morph targets is read as a plain neutral."""
+def _load(path: Path, unit: float, meshes=None) -> Rig:
+    """A rig from a path; a glTF file without morph targets is read as a plain neutral (its head's mesh)."""
     if path.suffix.lower() in (".glb", ".gltf"):
         from ..io.gltf import read_meshes
 
-        return read_meshes(path)[0]
+        return read_meshes(path, meshes=meshes)[0]
+    if meshes is not None:
+        raise InputError(f"{path}: meshes are chosen in glTF files only; this is not one")
     from ..io.rig import load_rig
 
     return load_rig(path, unit=unit)
