@@ -324,3 +324,87 @@ def test_report_on_a_mapped_rig_shows_the_map_and_the_rigs_curves(tmp_path):
     plain = make_take_folder(tmp_path / "plain", n_frames=30, n_missing=0)  # keys drive targets of their names
     text = write_take_extras(plain, progress=False, preview=False).report.read_text(encoding="utf-8")
     assert "Key shapes: the sculpt list" in text and 'id="map"' not in text
+
+
+# --------------------------------------------------------------------------- what each key is (issue 36 item 12)
+
+_SCORES = ("browInnerUp", "eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthSmileLeft", "mouthSmileRight",
+           "mouthFunnel", "eyeLookInLeft", "_neutral")
+
+
+def _scored_take(rng):
+    """12 frames of made-up MediaPipe scores; frame 0 rests, frames 4 and 8 hold the planted expressions."""
+    scores = rng.uniform(0.0, 0.03, (12, len(_SCORES)))
+    at = {n: i for i, n in enumerate(_SCORES)}
+    scores[4, [at["jawOpen"], at["mouthFunnel"], at["browInnerUp"]]] = (0.8, 0.35, 0.9)  # a brow raise as well
+    scores[4, at["eyeLookInLeft"]] = 1.0  # gaze: never a key's description
+    scores[8, [at["mouthSmileLeft"], at["eyeBlinkRight"]]] = (0.6, 0.5)
+    scores[:, at["_neutral"]] = 0.9
+    return Track(rng.normal(size=(12, 6, 2)), fps=25.0, blendshapes=scores, blendshape_names=_SCORES)
+
+
+def _scored_keys(takes=("", "", "", "")):
+    regions = {"upper": np.arange(3), "lower": np.arange(3, 6)}
+    return KeyShapes(np.zeros((6, 2)), np.ones((4, 6, 2)), ("upper_00", "lower_00", "lower_01", "lower_01_mirror"),
+                     [8, 4, 8, 8], ("upper", "lower", "lower", "lower"), regions, takes=takes,
+                     mirror_of=("", "", "", "lower_01"))
+
+
+def test_describe_keys_names_the_expressions_each_key_frame_rises_in():
+    from keyshape.report import describe_keys
+
+    track = _scored_take(np.random.default_rng(0))
+    upper, jaw, smile, mirrored = describe_keys(_scored_keys(), track)
+    # each key by its region's expressions only: frame 8's blink for the upper key, not its smile
+    assert upper.startswith("brows and eyes: eyeBlinkRight +0.") and "mouth" not in upper
+    # frame 4: the jaw first, the funnel second; the brows it raised too and the gaze are not the mouth's
+    assert jaw.startswith("mouth and jaw: jawOpen +0.") and ", mouthFunnel +0." in jaw
+    assert "brow" not in jaw and "eyeLook" not in jaw and "_neutral" not in jaw
+    rise = track.blendshapes[4, 3] - track.blendshapes[0, 3]  # counted from the neutral frame (0)
+    assert f"jawOpen {rise:+.2f}" in jaw
+    assert smile.startswith("mouth and jaw: mouthSmileLeft +0.") and "Right" not in smile
+    # the mirror: the source's rise with the sides swapped, and which key it mirrors
+    assert mirrored == smile.replace("mouthSmileLeft", "mouthSmileRight") + " (lower_01 mirrored)"
+
+
+def test_describe_keys_without_the_key_frames_or_scores_says_the_region():
+    from keyshape.report import describe_keys
+
+    track = _scored_take(np.random.default_rng(1))
+    other = describe_keys(_scored_keys(("b.mp4",) * 4), track, take="a.mp4")  # a key set from another take
+    assert other == ("brows and eyes", "mouth and jaw", "mouth and jaw", "mouth and jaw (lower_01 mirrored)")
+    assert describe_keys(_scored_keys(("a.mp4",) * 4), track, take="a.mp4")[1].startswith("mouth and jaw: jawOpen")
+    plain = Track(track.points, fps=25.0)  # another tracker's landmarks: no scores
+    assert describe_keys(_scored_keys(), plain) == other
+
+
+def test_the_demo_report_and_sheet_say_what_each_key_is(demo_out):
+    """Every key of the demo's report has its line; the expressions it names are the ones the
+    track's scores rise in most at the key's frame (within its region), checked from track.npz."""
+    from keyshape.io.keys_json import load_keys
+    from keyshape.io.track import load_track
+
+    keys, track = load_keys(demo_out / "keys.json"), load_track(demo_out / "track.npz")
+    page = (demo_out / "report.html").read_text()
+    table = page[page.index('<table id="keys">'):page.index("</table>", page.index('<table id="keys">'))]
+    lines = dict(re.findall(r'<tr data-key="([^"]+)"><td>[^<]+</td><td class="what">([^<]*)</td>', table))
+    assert list(lines) == list(keys.names)
+    scores, names = np.asarray(track.blendshapes), track.blendshape_names
+    rest = scores[keys.neutral_frame]
+    mouth = [i for i, n in enumerate(names) if n.startswith(("jaw", "mouth", "cheek", "nose", "tongue"))]
+    brows_eyes = [i for i, n in enumerate(names) if n.startswith(("brow", "eyeBlink", "eyeSquint", "eyeWide"))]
+    for k, name in enumerate(keys.names):
+        line = lines[name]
+        word, ours = ("mouth and jaw", mouth) if keys.key_regions[k] == "lower" else ("brows and eyes", brows_eyes)
+        assert line.startswith(word + ": "), line
+        if keys.mirror_of[k]:
+            assert line.endswith(f"({keys.mirror_of[k]} mirrored)"), line
+            continue
+        rise = scores[keys.frames[k]] - rest
+        top = names[max(ours, key=lambda i: rise[i])]
+        first = line.split(": ", 1)[1].split(",")[0].split(";")[0]
+        if rise[names.index(top)] >= 0.1:  # the strongest rise comes first (a pair: both sides of it)
+            assert first.startswith((top, top.replace("Right", "Left"))), (line, top)
+        named = set(re.findall(r"\b([a-z]+[A-Z]\w*?)(?:\+Right)? [+-]\d", line))
+        assert named and named <= {names[i] for i in ours}, line  # the region's own expressions only
+    assert len(set(lines.values())) >= len(lines) // 2  # lines that tell keys apart, not one per region
