@@ -314,9 +314,11 @@ def test_report_on_a_mapped_rig_shows_the_map_and_the_rigs_curves(tmp_path):
     text = result.report.read_text(encoding="utf-8")
     assert "the sculpt list" not in text
     assert "<h2>Key shapes: what map.json turns into the rig&#x27;s own shapes</h2>" in text
-    row = re.search(rf'<tr data-key="{keys.names[-1]}">(.*?)</tr>', text).group(1)
-    assert row == f"<td>{keys.names[-1]}</td><td>jawOpen ×0.90, mouthSmile_L ×0.30</td>"
-    assert re.search(rf'<tr data-key="{keys.names[1]}">(.*?)</tr>', text).group(1).endswith("<td><i>none</i></td>")
+    table = text[text.index('<table id="map">'):]
+    row = re.search(rf'<tr data-key="{keys.names[-1]}">(.*?)</tr>', table).group(1)
+    assert re.fullmatch(rf'<td>{keys.names[-1]}</td><td class="what">[^<]+</td>'
+                        "<td>jawOpen ×0.90, mouthSmile_L ×0.30</td>", row), row
+    assert re.search(rf'<tr data-key="{keys.names[1]}">(.*?)</tr>', table).group(1).endswith("<td><i>none</i></td>")
     assert "<h2>The rig&#x27;s own shapes over time (animation.glb)</h2>" in text
     assert len(re.findall(r'<img[^>]+src="data:image/png;base64,', text)) == 3  # sheet, weights, rig curves
     assert not (folder / "rig.png").exists()  # in the page only: the take folder's files stay as they were
