@@ -369,6 +369,28 @@ def test_describe_keys_names_the_expressions_each_key_frame_rises_in():
     assert mirrored == smile.replace("mouthSmileLeft", "mouthSmileRight") + " (lower_01 mirrored)"
 
 
+def test_describe_keys_slight_and_unusual_expressions():
+    """A key whose frame barely moves says "slight" and names that expression once; an expression
+    far above its usual level over the take is named as unusual after the strongest ones."""
+    from keyshape.report import describe_keys
+
+    track = _scored_take(np.random.default_rng(2))
+    scores = np.array(track.blendshapes)
+    at = {n: i for i, n in enumerate(_SCORES)}
+    scores[8, :] = scores[0, :]
+    scores[8, at["eyeBlinkLeft"]] = scores[0, at["eyeBlinkLeft"]] + 0.05  # a slight blink, not seen elsewhere
+    scores[:, at["mouthSmileLeft"]] += 0.5  # smiling throughout: the rise at frame 4 is nothing unusual
+    scores[4, at["mouthSmileLeft"]] += 0.3
+    track = Track(track.points, fps=25.0, blendshapes=scores, blendshape_names=_SCORES)
+    upper, jaw, *_ = describe_keys(_scored_keys(), track)
+    assert upper == f"brows and eyes: slight eyeBlinkLeft +{scores[8, 1] - scores[0, 1]:.2f}"
+    assert jaw.startswith("mouth and jaw: jawOpen +0.") and jaw.count("mouthSmileLeft") <= 1
+    scores[4, at["mouthFunnel"]] = scores[0, at["mouthFunnel"]] + 0.08  # small, but nowhere else in the take
+    track = Track(track.points, fps=25.0, blendshapes=scores, blendshape_names=_SCORES)
+    jaw = describe_keys(_scored_keys(), track)[1]
+    assert jaw.endswith(f"; unusually mouthFunnel +{scores[4, 6] - scores[0, 6]:.2f}"), jaw
+
+
 def test_describe_keys_without_the_key_frames_or_scores_says_the_region():
     from keyshape.report import describe_keys
 

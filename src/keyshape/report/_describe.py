@@ -3,9 +3,9 @@
 A key's name (``upper_03``, ``lower_05_mirror``) says which region it belongs to and little else.
 :func:`describe_keys` gives each key a line an animator can read: a region word, the ARKit
 expressions MediaPipe scored highest at the key's frame counted from the neutral frame (the
-scores' rise from the neutral), and the one that sets the frame apart from the rest of the take
-(its score furthest above the take's median, in units of the score's spread over the take) when
-that is another: ``mouth and jaw: mouthSmileLeft +0.62, jawOpen +0.31; unusually mouthFunnel +0.12``.
+scores' rise from the neutral), and of the others the one that sets the frame apart from the rest
+of the take (its score furthest above the take's median, in units of the score's spread over the
+take) when it stands out: ``mouth and jaw: mouthSmileLeft +0.62, jawOpen +0.31; unusually mouthFunnel +0.12``.
 On a take where the actor smiles throughout every mouth key rises in the smile; the unusual
 expression tells them apart. Only
 the expressions of the key's own region count (a mouth key is not described by the brows the
@@ -36,6 +36,7 @@ _SHOWN, _CLEAR = 2, 0.1  # at most this many expressions; a rise below _CLEAR is
 # a score this many spreads above the take's median is unusual; the floor keeps a score that
 # barely varies over the take (its spread near 0) from counting as unusual for a tiny rise
 _UNUSUAL, _SPREAD_FLOOR = 1.2, 0.02
+_UNUSUAL_RISE = 0.06  # and it must rise from the neutral by this much: a score that never varies is no news
 
 
 def describe_keys(keys: KeyShapes, track: Track, *, take: str | tuple[str, ...] = "") -> tuple[str, ...]:
@@ -113,8 +114,8 @@ def _row(scores: np.ndarray, track: Track, frame: int, own: bool) -> np.ndarray:
 
 
 def _terms(rise: np.ndarray, unusual: np.ndarray, names, region: str) -> str:
-    """The strongest rises among the region's expressions, ``name +0.62``, and the most unusual one
-    when another; "" when none is known."""
+    """The strongest rises among the region's expressions, ``name +0.62``, and the most unusual of
+    the others when it stands out; "" when none is known."""
     prefixes = _REGION_SCORES.get(region)
     allowed = [i for i, n in enumerate(names) if not n.startswith(("_", "eyeLook"))
                and (prefixes is None or n.startswith(prefixes)) and np.isfinite(rise[i])]
@@ -139,10 +140,12 @@ def _terms(rise: np.ndarray, unusual: np.ndarray, names, region: str) -> str:
         text = ", ".join(terms)
     elif rise[order[0]] > 0.01:
         text = f"slight {names[order[0]]} {rise[order[0]]:+.2f}"
+        clear.add(order[0])
     else:
         text = "close to the neutral (no expression score rises)"
-    odd = max(allowed, key=lambda i: unusual[i])
-    if odd not in clear and unusual[odd] >= _UNUSUAL:
+    others = [i for i in allowed if i not in clear]
+    odd = max(others, key=lambda i: unusual[i]) if others else None
+    if odd is not None and unusual[odd] >= _UNUSUAL and rise[odd] >= _UNUSUAL_RISE:
         text += f"; unusually {names[odd]} {rise[odd]:+.2f}"
     return text
 
