@@ -402,6 +402,25 @@ def test_describe_keys_without_the_key_frames_or_scores_says_the_region():
     assert describe_keys(_scored_keys(), plain) == other
 
 
+def test_describe_keys_of_another_take_where_this_take_weighs_them_most():
+    """A reused key set (run --keys): a key not from this take is read at this take's frame where its
+    solved weight is largest, when that reaches 0.5, and says which video frame that is."""
+    from keyshape.report import describe_keys
+
+    scored = _scored_take(np.random.default_rng(3))
+    track = Track(scored.points, 25.0, frame_index=np.arange(100, 112), time=np.arange(100, 112) / 25.0,
+                  blendshapes=scored.blendshapes, blendshape_names=_SCORES)
+    keys = _scored_keys(("b.mp4",) * 4)
+    values = np.full((12, 4), 0.1)
+    values[4, 1], values[8, 0] = 0.9, 0.3  # lower_00 weighs 0.9 at row 4; upper_00 never reaches 0.5
+    values[6, 3] = 0.95  # a mirror is its source's reflection, not read at its own frame
+    upper, jaw, smile, mirrored = describe_keys(keys, track, take="a.mp4", weights=Weights(values, keys.names, 25.0))
+    assert upper == "brows and eyes" and smile == "mouth and jaw" and mirrored == "mouth and jaw (lower_01 mirrored)"
+    assert jaw.startswith("mouth and jaw: jawOpen +0.") and jaw.endswith(" (as at video frame 104 of this take, "
+                                                                        "weight 0.90)")
+    assert jaw.split(" (as at")[0] == describe_keys(_scored_keys(), scored)[1]  # frame 4's own line
+
+
 def test_the_demo_report_and_sheet_say_what_each_key_is(demo_out):
     """Every key of the demo's report has its line; the expressions it names are the ones the
     track's scores rise in most at the key's frame (within its region), checked from track.npz."""

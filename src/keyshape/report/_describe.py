@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..containers import KeyShapes, Track
+from ..containers import KeyShapes, Track, Weights
 
 __all__ = ["describe_keys", "REGION_WORDS"]
 
@@ -36,10 +36,12 @@ _SHOWN, _CLEAR = 2, 0.1  # at most this many expressions; a rise below _CLEAR is
 # a score this many spreads above the take's median is unusual; the floor keeps a score that
 # barely varies over the take (its spread near 0) from counting as unusual for a tiny rise
 _UNUSUAL, _SPREAD_FLOOR = 1.2, 0.02
+_BORROW = 0.5  # a key of another take is read at this take's frame where it weighs at least this
 _UNUSUAL_RISE = 0.06  # and it must rise from the neutral by this much: a score that never varies is no news
 
 
-def describe_keys(keys: KeyShapes, track: Track, *, take: str | tuple[str, ...] = "") -> tuple[str, ...]:
+def describe_keys(keys: KeyShapes, track: Track, *, take: str | tuple[str, ...] = "",
+                  weights: Weights | None = None) -> tuple[str, ...]:
     """One readable line per key shape: its region word and its nearest ARKit expressions.
 
     Parameters
@@ -49,7 +51,11 @@ def describe_keys(keys: KeyShapes, track: Track, *, take: str | tuple[str, ...] 
         The take; its ``blendshapes (n_frames, n_scores)`` give the expressions at the key frames.
     take : str or tuple of str, keyword-only
         The take's name(s) as ``keys.takes`` records them (the video's or the track's file name);
-        a key from another take is described by its region alone.
+        a key from another take is described by its region alone, unless ``weights`` is given.
+    weights : Weights, optional, keyword-only
+        The take's solved key weights ``(n_frames, n_keys)``, named by the keys: a key from another
+        take is described at the frame of this take where its weight is largest (when it reaches
+        0.5), and its line says which frame that is.
 
     Returns
     -------
@@ -71,23 +77,27 @@ def describe_keys(keys: KeyShapes, track: Track, *, take: str | tuple[str, ...] 
     mouth and jaw: mouthSmileLeft +0.40
     mouth and jaw: mouthSmileRight +0.40 (lower_01 mirrored)
     """
-    found = _rises(keys, track, take)
+    found = _rises(keys, track, take, weights)
     lines = []
     for k in range(keys.n_keys):
         region = keys.key_regions[k]
         word = REGION_WORDS.get(region, region)
         terms = _terms(found[0][k], found[1][k], track.blendshape_names or (), region) if found else None
         line = f"{word}: {terms}" if terms else word
+        if terms and k in found[2]:
+            row, weight = found[2][k]
+            line += f" (as at video frame {int(track.frame_index[row])} of this take, weight {weight:.2f})"
         if keys.mirror_of[k]:
             line += f" ({keys.mirror_of[k]} mirrored)"
         lines.append(line)
     return tuple(lines)
 
 
-def _rises(keys: KeyShapes, track: Track, take) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(rises, unusual)``, both ``(n_keys, n_scores)``: each key's scores minus the neutral's, and
-    minus the take's median over the take's spread (NaN rows where the key's frame is not in this
-    track); None without scores."""
+def _rises(keys: KeyShapes, track: Track, take, weights: Weights | None):
+    """``(rises, unusual, borrowed)``: both ``(n_keys, n_scores)``, each key's scores minus the
+    neutral's, and minus the take's median over the take's spread (NaN rows where the key's frame is
+    not in this track and no frame of it weighs the key enough); ``borrowed`` ``{key: (frame, weight)}``
+    the keys of another take read at this take's frame. None without scores."""
     if track.blendshapes is None or not track.blendshape_names:
         return None
     scores = np.asarray(track.blendshapes, dtype=float)
@@ -96,6 +106,9 @@ def _rises(keys: KeyShapes, track: Track, take) -> tuple[np.ndarray, np.ndarray]
     if not np.isfinite(neutral).all():  # a neutral from elsewhere: the take's least score as its rest
         neutral = np.nanmin(scores, axis=0) if np.isfinite(scores).any() else neutral
     rows = np.vstack([_row(scores, track, int(f), t in ours) for f, t in zip(keys.frames, keys.takes)])
+    borrowed = _borrowed(keys, weights, ~np.isfinite(rows).all(axis=1), track.n_frames)
+    for k, (frame, _) in borrowed.items():
+        rows[k] = scores[frame]
     seen = np.isfinite(scores).all(axis=1)
     median, spread = (np.median(scores[seen], axis=0), scores[seen].std(axis=0)) if seen.any() else (neutral, 0.0)
     rises, unusual = rows - neutral, (rows - median) / (spread + _SPREAD_FLOOR)
@@ -104,7 +117,25 @@ def _rises(keys: KeyShapes, track: Track, take) -> tuple[np.ndarray, np.ndarray]
     for k, source in enumerate(keys.mirror_of):
         if source:  # the source key's, sides swapped
             rises[k], unusual[k] = rises[keys.names.index(source)][swap], unusual[keys.names.index(source)][swap]
-    return rises, unusual
+            borrowed.pop(k, None)
+    return rises, unusual, borrowed
+
+
+def _borrowed(keys: KeyShapes, weights: Weights | None, lacking: np.ndarray, n_frames: int) -> dict:
+    """``{key: (frame, weight)}``: for each key ``lacking`` its frame (not a mirror), this take's
+    frame where its weight is largest, when that reaches ``_BORROW``."""
+    if weights is None or weights.n_frames != n_frames:
+        return {}
+    found = {}
+    for k in np.flatnonzero(lacking):
+        if keys.mirror_of[k] or keys.names[k] not in weights.names:
+            continue
+        column = np.nan_to_num(np.asarray(weights.values[:, weights.names.index(keys.names[k])], dtype=float),
+                               nan=-1.0)
+        frame = int(np.argmax(column)) if len(column) else -1
+        if frame >= 0 and column[frame] >= _BORROW:
+            found[int(k)] = (frame, float(column[frame]))
+    return found
 
 
 def _row(scores: np.ndarray, track: Track, frame: int, own: bool) -> np.ndarray:

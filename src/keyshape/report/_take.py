@@ -110,7 +110,7 @@ def _names(take: _Take) -> tuple[str, str]:
 
 
 def _descriptions(take: _Take) -> tuple[str, ...]:
-    return describe_keys(take.keys, take.track, take=_names(take))
+    return describe_keys(take.keys, take.track, take=_names(take), weights=take.weights)
 
 
 def _entry(path: Path, key: str):

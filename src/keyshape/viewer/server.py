@@ -131,7 +131,8 @@ def load_take(folder: str | Path) -> Take:
     track = _track(files.get(track_name))
     frames, regions = _keys(files.get(keys_name), video)
     times = () if track is None else tuple(round(float(t), 6) for t in track.time)
-    described = _descriptions(files.get(keys_name), track, (video.name if video else "", track_name))
+    described = _descriptions(files.get(keys_name), track, (video.name if video else "", track_name),
+                              files.get(Path(listed.get("weights", "weights.csv")).name))
     return Take(folder, float(fps), n_frames, info.get("neutral_frame"),
                 video if video is not None and video.is_file() else None, files,
                 frames, regions, animation, times, described)
@@ -146,20 +147,23 @@ def _track(path: Path | None):
     return load_track(path)
 
 
-def _descriptions(path: Path | None, track, take: tuple[str, str]) -> dict[str, str]:
-    """``{key: readable line}`` from ``keys.json`` and the take's track; empty without either."""
+def _descriptions(path: Path | None, track, take: tuple[str, str], weights: Path | None) -> dict[str, str]:
+    """``{key: readable line}`` from ``keys.json`` and the take's track (and ``weights.csv``, for the
+    keys of another take); empty without the keys or the track."""
     if path is None or track is None:
         return {}
     from ..io.keys_json import load_keys
+    from ..io.weights_csv import load_weights_csv
     from ..report import describe_keys
 
     try:
         keys = load_keys(path)
+        solved = load_weights_csv(weights) if weights is not None else None
     except InputError:
         return {}  # the key file is a nicety here, as in _keys
     if keys.n_landmarks != track.n_landmarks:
         return {}
-    return dict(zip(keys.names, describe_keys(keys, track, take=take)))
+    return dict(zip(keys.names, describe_keys(keys, track, take=take, weights=solved)))
 
 
 def _keys(path: Path | None, video: Path | None) -> tuple[dict[str, int], dict[str, str]]:
