@@ -1,20 +1,22 @@
 """Words for a key shape: the part of the face it moves and the ARKit expressions it is nearest to.
 
 A key's name (``upper_03``, ``lower_05_mirror``) says which region it belongs to and little else.
-:func:`describe_keys` gives each key a line an animator can read: a region word, the ARKit
+:func:`describe_keys` gives each key a line an animator can read: a region word, the two ARKit
 expressions MediaPipe scored highest at the key's frame counted from the neutral frame (the
-scores' rise from the neutral), and of the others the one that sets the frame apart from the rest
-of the take (its score furthest above the take's median, in units of the score's spread over the
-take) when it stands out: ``mouth and jaw: mouthSmileLeft +0.62, jawOpen +0.31; unusually mouthFunnel +0.12``.
+scores' rise from the neutral; both sides of one expression count as one, ``mouthSmileLeft+Right
++0.37/+0.52``), and of the others the one that sets the frame apart from the rest of the take (its
+score furthest above the take's median, in units of the score's spread over the take) when it
+stands out: ``mouth and jaw: mouthSmileLeft +0.62, jawOpen +0.31; unusually mouthFunnel +0.12``.
 On a take where the actor smiles throughout every mouth key rises in the smile; the unusual
-expression tells them apart. Only
-the expressions of the key's own region count (a mouth key is not described by the brows the
-actor happened to raise at that frame); gaze scores (``eyeLook*``) never do: the gaze is not a key.
+expression tells them apart. Only the expressions of the key's own region count (a mouth key is
+not described by the brows the actor happened to raise at that frame); gaze scores (``eyeLook*``)
+never do: the gaze is not a key.
 
 A mirrored key is its source key's shape reflected through the face's plane of symmetry, so its
 scores are the source's rise with the sides swapped (``...Left`` <-> ``...Right``). A key whose
-frame is not in the take's track (a key set from another take), or a track without scores
-(another tracker's landmarks), is described by its region word alone.
+frame is not in the take's track (a key set from another take) is read at the take's frame where
+its solved weight is largest, given the weights and when that reaches 0.5; else, and on a track
+without scores (another tracker's landmarks), it is described by its region word alone.
 """
 
 from __future__ import annotations
