@@ -314,9 +314,11 @@ def test_report_on_a_mapped_rig_shows_the_map_and_the_rigs_curves(tmp_path):
     text = result.report.read_text(encoding="utf-8")
     assert "the sculpt list" not in text
     assert "<h2>Key shapes: what map.json turns into the rig&#x27;s own shapes</h2>" in text
-    row = re.search(rf'<tr data-key="{keys.names[-1]}">(.*?)</tr>', text).group(1)
-    assert row == f"<td>{keys.names[-1]}</td><td>jawOpen ×0.90, mouthSmile_L ×0.30</td>"
-    assert re.search(rf'<tr data-key="{keys.names[1]}">(.*?)</tr>', text).group(1).endswith("<td><i>none</i></td>")
+    table = text[text.index('<table id="map">'):]
+    row = re.search(rf'<tr data-key="{keys.names[-1]}">(.*?)</tr>', table).group(1)
+    assert re.fullmatch(rf'<td>{keys.names[-1]}</td><td class="what">[^<]+</td>'
+                        "<td>jawOpen ×0.90, mouthSmile_L ×0.30</td>", row), row
+    assert re.search(rf'<tr data-key="{keys.names[1]}">(.*?)</tr>', table).group(1).endswith("<td><i>none</i></td>")
     assert "<h2>The rig&#x27;s own shapes over time (animation.glb)</h2>" in text
     assert len(re.findall(r'<img[^>]+src="data:image/png;base64,', text)) == 3  # sheet, weights, rig curves
     assert not (folder / "rig.png").exists()  # in the page only: the take folder's files stay as they were
@@ -324,3 +326,128 @@ def test_report_on_a_mapped_rig_shows_the_map_and_the_rigs_curves(tmp_path):
     plain = make_take_folder(tmp_path / "plain", n_frames=30, n_missing=0)  # keys drive targets of their names
     text = write_take_extras(plain, progress=False, preview=False).report.read_text(encoding="utf-8")
     assert "Key shapes: the sculpt list" in text and 'id="map"' not in text
+
+
+# --------------------------------------------------------------------------- what each key is (issue 36 item 12)
+
+_SCORES = ("browInnerUp", "eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthSmileLeft", "mouthSmileRight",
+           "mouthFunnel", "eyeLookInLeft", "_neutral")
+
+
+def _scored_take(rng):
+    """12 frames of made-up MediaPipe scores; frame 0 rests, frames 4 and 8 hold the planted expressions."""
+    scores = rng.uniform(0.0, 0.03, (12, len(_SCORES)))
+    at = {n: i for i, n in enumerate(_SCORES)}
+    scores[4, [at["jawOpen"], at["mouthFunnel"], at["browInnerUp"]]] = (0.8, 0.35, 0.9)  # a brow raise as well
+    scores[4, at["eyeLookInLeft"]] = 1.0  # gaze: never a key's description
+    scores[8, [at["mouthSmileLeft"], at["eyeBlinkRight"]]] = (0.6, 0.5)
+    scores[:, at["_neutral"]] = 0.9
+    return Track(rng.normal(size=(12, 6, 2)), fps=25.0, blendshapes=scores, blendshape_names=_SCORES)
+
+
+def _scored_keys(takes=("", "", "", "")):
+    regions = {"upper": np.arange(3), "lower": np.arange(3, 6)}
+    return KeyShapes(np.zeros((6, 2)), np.ones((4, 6, 2)), ("upper_00", "lower_00", "lower_01", "lower_01_mirror"),
+                     [8, 4, 8, 8], ("upper", "lower", "lower", "lower"), regions, takes=takes,
+                     mirror_of=("", "", "", "lower_01"))
+
+
+def test_describe_keys_names_the_expressions_each_key_frame_rises_in():
+    from keyshape.report import describe_keys
+
+    track = _scored_take(np.random.default_rng(0))
+    upper, jaw, smile, mirrored = describe_keys(_scored_keys(), track)
+    # each key by its region's expressions only: frame 8's blink for the upper key, not its smile
+    assert upper.startswith("brows and eyes: eyeBlinkRight +0.") and "mouth" not in upper
+    # frame 4: the jaw first, the funnel second; the brows it raised too and the gaze are not the mouth's
+    assert jaw.startswith("mouth and jaw: jawOpen +0.") and ", mouthFunnel +0." in jaw
+    assert "brow" not in jaw and "eyeLook" not in jaw and "_neutral" not in jaw
+    rise = track.blendshapes[4, 3] - track.blendshapes[0, 3]  # counted from the neutral frame (0)
+    assert f"jawOpen {rise:+.2f}" in jaw
+    assert smile.startswith("mouth and jaw: mouthSmileLeft +0.") and "Right" not in smile
+    # the mirror: the source's rise with the sides swapped, and which key it mirrors
+    assert mirrored == smile.replace("mouthSmileLeft", "mouthSmileRight") + " (lower_01 mirrored)"
+
+
+def test_describe_keys_slight_and_unusual_expressions():
+    """A key whose frame barely moves says "slight" and names that expression once; an expression
+    far above its usual level over the take is named as unusual after the strongest ones."""
+    from keyshape.report import describe_keys
+
+    track = _scored_take(np.random.default_rng(2))
+    scores = np.array(track.blendshapes)
+    at = {n: i for i, n in enumerate(_SCORES)}
+    scores[8, :] = scores[0, :]
+    scores[8, at["eyeBlinkLeft"]] = scores[0, at["eyeBlinkLeft"]] + 0.05  # a slight blink, not seen elsewhere
+    scores[:, at["mouthSmileLeft"]] += 0.5  # smiling throughout: the rise at frame 4 is nothing unusual
+    scores[4, at["mouthSmileLeft"]] += 0.3
+    track = Track(track.points, fps=25.0, blendshapes=scores, blendshape_names=_SCORES)
+    upper, jaw, *_ = describe_keys(_scored_keys(), track)
+    assert upper == f"brows and eyes: slight eyeBlinkLeft +{scores[8, 1] - scores[0, 1]:.2f}"
+    assert jaw.startswith("mouth and jaw: jawOpen +0.") and jaw.count("mouthSmileLeft") <= 1
+    scores[4, at["mouthFunnel"]] = scores[0, at["mouthFunnel"]] + 0.08  # small, but nowhere else in the take
+    track = Track(track.points, fps=25.0, blendshapes=scores, blendshape_names=_SCORES)
+    jaw = describe_keys(_scored_keys(), track)[1]
+    assert jaw.endswith(f"; unusually mouthFunnel +{scores[4, 6] - scores[0, 6]:.2f}"), jaw
+
+
+def test_describe_keys_without_the_key_frames_or_scores_says_the_region():
+    from keyshape.report import describe_keys
+
+    track = _scored_take(np.random.default_rng(1))
+    other = describe_keys(_scored_keys(("b.mp4",) * 4), track, take="a.mp4")  # a key set from another take
+    assert other == ("brows and eyes", "mouth and jaw", "mouth and jaw", "mouth and jaw (lower_01 mirrored)")
+    assert describe_keys(_scored_keys(("a.mp4",) * 4), track, take="a.mp4")[1].startswith("mouth and jaw: jawOpen")
+    plain = Track(track.points, fps=25.0)  # another tracker's landmarks: no scores
+    assert describe_keys(_scored_keys(), plain) == other
+
+
+def test_describe_keys_of_another_take_where_this_take_weighs_them_most():
+    """A reused key set (run --keys): a key not from this take is read at this take's frame where its
+    solved weight is largest, when that reaches 0.5, and says which video frame that is."""
+    from keyshape.report import describe_keys
+
+    scored = _scored_take(np.random.default_rng(3))
+    track = Track(scored.points, 25.0, frame_index=np.arange(100, 112), time=np.arange(100, 112) / 25.0,
+                  blendshapes=scored.blendshapes, blendshape_names=_SCORES)
+    keys = _scored_keys(("b.mp4",) * 4)
+    values = np.full((12, 4), 0.1)
+    values[4, 1], values[8, 0] = 0.9, 0.3  # lower_00 weighs 0.9 at row 4; upper_00 never reaches 0.5
+    values[6, 3] = 0.95  # a mirror is its source's reflection, not read at its own frame
+    upper, jaw, smile, mirrored = describe_keys(keys, track, take="a.mp4", weights=Weights(values, keys.names, 25.0))
+    assert upper == "brows and eyes" and smile == "mouth and jaw" and mirrored == "mouth and jaw (lower_01 mirrored)"
+    assert jaw.startswith("mouth and jaw: jawOpen +0.") and jaw.endswith(" (as at video frame 104 of this take, "
+                                                                        "weight 0.90)")
+    assert jaw.split(" (as at")[0] == describe_keys(_scored_keys(), scored)[1]  # frame 4's own line
+
+
+def test_the_demo_report_and_sheet_say_what_each_key_is(demo_out):
+    """Every key of the demo's report has its line; the expressions it names are the ones the
+    track's scores rise in most at the key's frame (within its region), checked from track.npz."""
+    from keyshape.io.keys_json import load_keys
+    from keyshape.io.track import load_track
+
+    keys, track = load_keys(demo_out / "keys.json"), load_track(demo_out / "track.npz")
+    page = (demo_out / "report.html").read_text()
+    table = page[page.index('<table id="keys">'):page.index("</table>", page.index('<table id="keys">'))]
+    lines = dict(re.findall(r'<tr data-key="([^"]+)"><td>[^<]+</td><td class="what">([^<]*)</td>', table))
+    assert list(lines) == list(keys.names)
+    scores, names = np.asarray(track.blendshapes), track.blendshape_names
+    rest = scores[keys.neutral_frame]
+    mouth = [i for i, n in enumerate(names) if n.startswith(("jaw", "mouth", "cheek", "nose", "tongue"))]
+    brows_eyes = [i for i, n in enumerate(names) if n.startswith(("brow", "eyeBlink", "eyeSquint", "eyeWide"))]
+    for k, name in enumerate(keys.names):
+        line = lines[name]
+        word, ours = ("mouth and jaw", mouth) if keys.key_regions[k] == "lower" else ("brows and eyes", brows_eyes)
+        assert line.startswith(word + ": "), line
+        if keys.mirror_of[k]:
+            assert line.endswith(f"({keys.mirror_of[k]} mirrored)"), line
+            continue
+        rise = scores[keys.frames[k]] - rest
+        top = names[max(ours, key=lambda i: rise[i])]
+        first = line.split(": ", 1)[1].split(",")[0].split(";")[0]
+        if rise[names.index(top)] >= 0.1:  # the strongest rise comes first (a pair: both sides of it)
+            assert first.startswith((top, top.replace("Right", "Left"))), (line, top)
+        named = set(re.findall(r"\b([a-z]+[A-Z]\w*?)(?:\+Right)? [+-]\d", line))
+        assert named and named <= {names[i] for i in ours}, line  # the region's own expressions only
+    assert len(set(lines.values())) >= len(lines) // 2  # lines that tell keys apart, not one per region

@@ -95,8 +95,8 @@ def test_contact_sheet_rows_and_region_colours(take, tmp_path):
 
     keys, track, video = take
     sheet = np.asarray(Image.open(contact_sheet(keys, track, video, tmp_path / "keys.png", cell=120)))
-    assert sheet.shape == (30 + 2 * (120 + 34), 3 * 120, 3)  # 2 regions; neutral + at most 2 keys
-    upper_row, lower_row = sheet[30:150], sheet[184:304]
+    assert sheet.shape == (30 + 2 * (120 + 62), 3 * 120, 3)  # 2 regions; neutral + at most 2 keys
+    upper_row, lower_row = sheet[30:150], sheet[212:332]
     assert (upper_row == UPPER).all(axis=2).sum() > 20 and not (upper_row == LOWER).all(axis=2).any()
     assert (lower_row == LOWER).all(axis=2).sum() > 20 and not (lower_row == UPPER).all(axis=2).any()
     assert (lower_row[:, 240:] == 24).all()  # the lower region has one key: its third cell stays empty
@@ -275,3 +275,26 @@ def test_blender_plays_the_exported_weights(head_obj, tmp_path, suffix):
     np.testing.assert_allclose(seen["values"], weights.values, atol=1e-5)
     # the targets arrive whole (sparse glTF accessors, USD pointIndices): same displacement lengths
     np.testing.assert_allclose(seen["moves"], np.sort(np.linalg.norm(rig.deltas, axis=2), axis=1), atol=1e-6)
+
+
+def test_the_kit_says_what_each_key_is(take, head_obj, tmp_path):
+    """Issue 36 item 12: the kit's README and keys.png carry each key's readable line (its region
+    word and the ARKit expressions the tracker scored at its frame)."""
+    from PIL import Image
+
+    keys, track, video = take
+    names = ("browInnerUp", "jawOpen", "mouthSmileLeft")
+    scores = np.zeros((N_FRAMES, 3))
+    scores[[3, 6], 0], scores[9, 1], scores[9, 2] = 0.7, 0.5, 0.2
+    scored = Track(track.points, fps=track.fps, blendshapes=scores, blendshape_names=names)
+    kit = write_sculpt_kit(keys, head_obj, tmp_path / "kit", track=scored, video=video, unit=0.01)
+    readme = kit.readme.read_text()
+    assert "| `upper_00` | brows and eyes: browInnerUp +0.70 | upper |" in readme
+    assert "| `lower_00` | mouth and jaw: jawOpen +0.50, mouthSmileLeft +0.20 | lower |" in readme
+    plain = np.asarray(Image.open(contact_sheet(keys, track, video, tmp_path / "plain.png", cell=120)))
+    sheet = np.asarray(Image.open(kit.sheet))
+    band = sheet[30 + 240 + 33:30 + 240 + 60, 240:480]  # under the upper_00 picture: its line, two rows
+    rgb = band.astype(int)
+    yellow = (rgb[..., 0] > 120) & (rgb[..., 0] - rgb[..., 2] > 35)  # the description's pale yellow text
+    assert yellow.sum() > 100, yellow.sum()
+    assert sheet.shape[1] == plain.shape[1] * 2  # cell 240 against 120: the same layout

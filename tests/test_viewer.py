@@ -439,3 +439,39 @@ def test_viewer_weights_panel_names_whole_and_grouped_by_region(browser, demo_ta
         assert row["heading"] == region_of.get(row["name"], "gaze"), row
     assert len({r["shown"] for r in rows}) == len(rows)
     assert any(r["name"].endswith("_mirror") for r in rows)
+
+
+# every key row's name and the line the panel shows under it (on a line of its own: below the name's middle)
+_PANEL_DESCRIPTIONS = """() => [...document.querySelectorAll('#weights > li.weight')].map((row) => {
+  const text = row.querySelector('.description'), name = row.querySelector('.name');
+  const box = text ? text.getBoundingClientRect() : null;
+  return {name: row.dataset.name, text: text ? text.innerText : null, title: name.title,
+          visible: box !== null && box.width > 0 && box.height > 0,
+          below: box !== null && box.top > name.getBoundingClientRect().top + name.offsetHeight / 2};
+})"""
+
+
+def test_viewer_weights_panel_says_what_each_key_is(browser, demo_take):
+    """Issue 36 item 12: under every key's row the panel shows its readable line (region word and
+    nearest ARKit expressions, as the report gives it); the gaze rows have none."""
+    from keyshape.io.keys_json import load_keys
+    from keyshape.io.track import load_track
+    from keyshape.report import describe_keys
+
+    keys = load_keys(demo_take / "keys.json")
+    lines = dict(zip(keys.names, describe_keys(keys, load_track(demo_take / "track.npz"),
+                                               take=(keys.neutral_take, "track.npz"))))
+    with _Served(demo_take) as server:
+        status, _, body = _get(server, "/api/take")
+        page = _open(browser, server.url)
+        rows = page.evaluate(_PANEL_DESCRIPTIONS)
+        page.close()
+    assert status == 200 and json.loads(body)["key_descriptions"] == lines
+    assert {r["name"] for r in rows if r["text"] is not None} == set(keys.names)
+    for row in rows:
+        if row["name"] in lines:
+            assert row["text"] == lines[row["name"]] and row["visible"] and row["below"], row
+            assert row["title"].startswith(f"{row['name']}: {lines[row['name']]}"), row
+        else:
+            assert row["name"].startswith("eyeLook") and row["text"] is None, row
+    assert any(": mouth" in lines[n] for n in keys.names if n.startswith("lower"))

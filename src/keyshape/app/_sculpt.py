@@ -22,6 +22,7 @@ becomes the starting targets (written back in each mesh's own space).
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,7 +130,7 @@ def write_sculpt_kit(keys: KeyShapes, rig, folder, *, track: Track, video, unit:
     with staged_folder(folder) as stage:
         _write_glb(rig if is_gltf else None, stage / GLB, targets, meshes)
         contact_sheet(keys, track, video, stage / SHEET, neutral_source=neutral_source)
-        _write_readme(stage / README, keys, track, Path(video), rig, targets)
+        _write_readme(stage / README, keys, track, Path(video), rig, targets, _key_descriptions(keys, track))
     return SculptKit(folder, folder / GLB, folder / SHEET, folder / README)
 
 
@@ -211,7 +212,8 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
     rest = _rest_cells(keys, neutral_source, cell) if separate else None
     regions = list(keys.regions)
     columns = 1 + max(len(keys.keys_of(r)) for r in regions)
-    label, title = 34, 30
+    described = dict(zip(keys.names, _key_descriptions(keys, track)))
+    label, title = 62, 30
     sheet = Image.new("RGB", (columns * cell, title + len(regions) * (cell + label)), (24, 24, 24))
     draw = ImageDraw.Draw(sheet)
     draw.text((8, 7), f"{keys.n_keys} key shapes, {Path(video).name}: sculpt one target per key, named as shown",
@@ -231,6 +233,8 @@ def contact_sheet(keys: KeyShapes, track: Track, video, path, *, cell: int = 240
             caption = f"{name}  ({region})" if name == "neutral" else name
             draw.text((x + 6, y + cell + 2), caption, fill=colour, font=_font(15))
             draw.text((x + 6, y + cell + 18), where, fill=(200, 200, 200), font=_font(12))
+            for line, text in enumerate(textwrap.wrap(described.get(name, ""), 36)[:2]):  # what the key is
+                draw.text((x + 6, y + cell + 33 + 13 * line), text, fill=(235, 235, 170), font=_font(11))
     with atomic_path(path) as tmp:
         sheet.save(tmp, format="PNG")
     return Path(path)
@@ -311,8 +315,19 @@ def _face_box(points: np.ndarray, image_size) -> tuple[int, int, int, int]:
 # --------------------------------------------------------------------------- README
 
 
-def _write_readme(path: Path, keys: KeyShapes, track: Track, video: Path, rig: Path, targets: Rig) -> Path:
-    rows = [f"| `{keys.names[k]}` | {keys.key_regions[k]} | {int(track.frame_index[keys.frames[k]])} | "
+def _key_descriptions(keys: KeyShapes, track: Track) -> tuple[str, ...]:
+    """A readable line per key (:func:`keyshape.report.describe_keys`) for keys made from ``track``
+    (the sculpt kit's rule: the track the keys come from), its neutral too unless from a file of its own."""
+    from ..report import describe_keys, separate_neutral
+
+    ours = tuple({*keys.takes, *(() if separate_neutral(keys) else (keys.neutral_take,))})
+    return describe_keys(keys, track, take=ours)
+
+
+def _write_readme(path: Path, keys: KeyShapes, track: Track, video: Path, rig: Path, targets: Rig,
+                  described: tuple[str, ...]) -> Path:
+    rows = [f"| `{keys.names[k]}` | {described[k]} | {keys.key_regions[k]} | "
+            f"{int(track.frame_index[keys.frames[k]])} | "
             f"{track.time[keys.frames[k]]:.2f} | "
             + (f"no: the mirror image of `{keys.mirror_of[k]}`" if keys.mirror_of[k] else "yes") + " |"
             for k in range(keys.n_keys)]
@@ -379,8 +394,8 @@ Units and axes: glTF metres, +Y up, the character facing +Z. {neutral}
 
 ## Key shapes
 
-| name | region | frame | time (s) | sculpt? |
-|---|---|---|---|---|
+| name | what it is (MediaPipe's strongest ARKit expressions at its frame) | region | frame | time (s) | sculpt? |
+|---|---|---|---|---|---|
 {table}
 """.replace("{glb}", GLB).replace("{sheet}", SHEET)  # noqa: E501 - markdown table rows cannot wrap
 

@@ -35,7 +35,8 @@ td.n{text-align:right;font-variant-numeric:tabular-nums} img,video{max-width:100
 
 
 def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: dict[str, Path],
-                 video: str | None = None, notes: list[str] | None = None, mapping: dict | None = None) -> Path:
+                 video: str | None = None, notes: list[str] | None = None, mapping: dict | None = None,
+                 descriptions: tuple[str, ...] | None = None) -> Path:
     """Write the HTML report (everything in it but a linked video), atomically.
 
     Parameters
@@ -55,6 +56,8 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     mapping : dict, optional, keyword-only
         ``{key: {target: gain}}``: the map that drives the rig's own shapes (``map.json``), shown
         as a table under the key shapes.
+    descriptions : tuple of n_keys str, optional, keyword-only
+        A readable line per key (:func:`keyshape.report.describe_keys`), in the key table and the map.
 
     Returns
     -------
@@ -72,9 +75,10 @@ def write_report(path, numbers: dict, keys: KeyShapes, *, title: str, images: di
     for caption_text, png in images.items():
         parts += [f"<h2>{html.escape(caption_text)}</h2>",
                   f'<img alt="{html.escape(caption_text)}" src="{data_uri(png, "image/png")}">']
-    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"], numbers.get("key_frames"))]
+    described = dict(zip(keys.names, descriptions or ()))
+    parts += ["<h2>Key shapes</h2>", _keys_table(keys, numbers["fps"], numbers.get("key_frames"), described)]
     if mapping:
-        parts += ["<h2>The map: key shapes to the rig's shapes (map.json)</h2>", _map_table(keys, mapping)]
+        parts += ["<h2>The map: key shapes to the rig's shapes (map.json)</h2>", _map_table(keys, mapping, described)]
     parts += [_definitions(numbers)]
     data = json.dumps(numbers).replace("</", "<\\/")
     document = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
@@ -176,30 +180,36 @@ def _fmt(value) -> str:
     return "–" if value is None else f"{value:.2f}"
 
 
-def _keys_table(keys: KeyShapes, fps: float, video_frames=None) -> str:
-    """One row per key: its frame and time in the video (``video_frames``, from :func:`take_numbers`;
-    the track row over ``fps`` for a key of another take)."""
+def _keys_table(keys: KeyShapes, fps: float, video_frames=None, described: dict | None = None) -> str:
+    """One row per key: what it looks like (``described``: key -> line), its frame and time in the
+    video (``video_frames``, from :func:`take_numbers`; the track row over ``fps`` for a key of another take)."""
     video_frames = video_frames or [None] * keys.n_keys
+    described = described or {}
     when = [(at["frame"], at["time"]) if at else (int(f), f / fps) for at, f in zip(video_frames, keys.frames)]
-    rows = "".join(f"<tr><td>{html.escape(keys.names[k])}</td><td>{html.escape(keys.key_regions[k])}</td>"
+    rows = "".join(f'<tr data-key="{html.escape(keys.names[k])}"><td>{html.escape(keys.names[k])}</td>'
+                   f'<td class="what">{html.escape(described.get(keys.names[k], ""))}</td>'
+                   f"<td>{html.escape(keys.key_regions[k])}</td>"
                    f'<td class="n">{when[k][0]}</td><td class="n">{when[k][1]:.2f} s</td>'
                    f"<td>{html.escape(keys.takes[k])}</td></tr>" for k in range(keys.n_keys))
-    return ('<table id="keys"><tr><th>name</th><th>region</th><th>video frame</th><th>time</th><th>take</th></tr>'
-            f"{rows}</table>")
+    return ('<table id="keys"><tr><th>name</th><th>what it is (region; the ARKit expressions MediaPipe scored '
+            "highest at its frame, as the rise from the neutral)</th><th>region</th><th>video frame</th>"
+            f"<th>time</th><th>take</th></tr>{rows}</table>")
 
 
-def _map_table(keys: KeyShapes, mapping: dict, shown: int = 6) -> str:
-    """One row per key: the rig's shapes it drives, strongest first (``shown`` of them), with their gains."""
-    rows = []
+def _map_table(keys: KeyShapes, mapping: dict, described: dict | None = None, shown: int = 6) -> str:
+    """One row per key (and what it is, ``described``): the rig's shapes it drives, strongest first
+    (``shown`` of them), with their gains."""
+    described, rows = described or {}, []
     for name in [*keys.names, *(k for k in mapping if k not in keys.names)]:
         drives = sorted(((g, t) for t, g in mapping.get(name, {}).items() if g > 0), reverse=True)
         terms = ", ".join(f"{html.escape(t)} ×{g:.2f}" for g, t in drives[:shown])
         if len(drives) > shown:
             terms += f", … ({len(drives) - shown} more)"
         rows.append(f'<tr data-key="{html.escape(name)}"><td>{html.escape(name)}</td>'
+                    f'<td class="what">{html.escape(described.get(name, ""))}</td>'
                     f"<td>{terms or '<i>none</i>'}</td></tr>")
-    return ('<table id="map"><tr><th>key shape</th><th>drives the rig\'s shapes (gain: the shape\'s weight at '
-            f"the key's full weight)</th></tr>{''.join(rows)}</table>")
+    return ('<table id="map"><tr><th>key shape</th><th>what it is</th><th>drives the rig\'s shapes (gain: the '
+            f"shape's weight at the key's full weight)</th></tr>{''.join(rows)}</table>")
 
 
 def _definitions(n: dict) -> str:

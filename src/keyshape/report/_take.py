@@ -24,6 +24,7 @@ import numpy as np
 from ..containers import KeyShapes, Track, Weights
 from ..exceptions import InputError
 from ..schemes import stable_points
+from ._describe import describe_keys
 from ._fit import HULL_TOLERANCE, FitQuality, face_scale, fit_quality, gap_runs, take_numbers
 from ._html import data_uri, write_report
 from ._neutral import neutral_picture, separate_neutral
@@ -98,8 +99,18 @@ def write_take_extras(outdir, *, progress: bool = True, preview: bool = True, ba
         curves = _rig_curves(outdir, take, Path(work)) if gains else None
         images = {captions[k]: p for k, p in {**pictures, **({"rig": curves} if curves else {})}.items()}
         report = write_report(outdir / "report.html", numbers, take.keys, title=f"keyshape · {take.name}",
-                              images=images, video=_video_source(movie, embed_video), notes=notes, mapping=gains)
+                              images=images, video=_video_source(movie, embed_video), notes=notes, mapping=gains,
+                              descriptions=_descriptions(take))
     return TakeExtras(report, movie, pictures, numbers)
+
+
+def _names(take: _Take) -> tuple[str, str]:
+    """The names ``keys.takes`` may give this take: the video's and the track file's."""
+    return take.name, take.info.get("files", {}).get("track", "track.npz")
+
+
+def _descriptions(take: _Take) -> tuple[str, ...]:
+    return describe_keys(take.keys, take.track, take=_names(take), weights=take.weights)
 
 
 def _entry(path: Path, key: str):
@@ -220,9 +231,9 @@ def _pictures(outdir: Path, take: _Take, fit: FitQuality, k_table) -> dict[str, 
     source = take.track.frame_index  # track row -> the video's frame number
     found = _read_frames(take.video, [int(source[f]) for f in frames])
     images = {f: found[int(source[f])] for f in frames if int(source[f]) in found}
-    names = (take.name, take.info.get("files", {}).get("track", "track.npz"))
     out = {"keyshapes": plots.contact_sheet(take.keys, take.track, images, outdir / "keyshapes.png",
-                                            take=names, neutral=_neutral_picture(take)),
+                                            take=_names(take), neutral=_neutral_picture(take),
+                                            descriptions=_descriptions(take)),
            "weights": plots.weight_curves(take.weights, take.keys, fit, outdir / "weights.png",
                                             hidden=_hidden(take))}
     k_table = k_table if k_table is not None else _read_k_table(outdir / "error_vs_k.json")

@@ -7,6 +7,7 @@ returns its path; the data come in as arrays and core types, never read from fil
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -55,7 +56,8 @@ def _rgb(colour) -> tuple[float, float, float]:
 
 def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray], path, *,
                   take: str | tuple[str, ...] = "", columns: int = 6,
-                  neutral: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+                  neutral: tuple[np.ndarray, np.ndarray] | None = None,
+                  descriptions: tuple[str, ...] | None = None) -> Path:
     """The "sculpt list": the neutral frame and every key frame, cropped around the face.
 
     Each tile shows the frame with its landmarks, the key's region highlighted in the
@@ -80,6 +82,8 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
         The picture ``(height, width, 3) uint8`` and landmarks ``(n_landmarks, 2)`` of a neutral
         from a file of its own (``keys.neutral_take``, see :func:`keyshape.report._neutral.neutral_picture`):
         its tile shows them, titled with the file's name.
+    descriptions : tuple of n_keys str, optional, keyword-only
+        A readable line per key (:func:`keyshape.report.describe_keys`), printed under its tile's title.
 
     Returns
     -------
@@ -89,7 +93,7 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
     tiles += [(keys.names[k], keys.key_regions[k], int(keys.frames[k]), keys.takes[k]) for k in range(keys.n_keys)]
     columns = max(1, min(columns, len(tiles)))
     rows = -(-len(tiles) // columns)
-    figure = _figure(2.3 * columns, 2.55 * rows)
+    figure = _figure(2.3 * columns, (3.05 if descriptions else 2.55) * rows)
     axes = figure.subplots(rows, columns, squeeze=False).ravel()
     palette = region_palette(keys.regions)
     ours = {"", *((take,) if isinstance(take, str) else take)}
@@ -106,6 +110,8 @@ def contact_sheet(keys: KeyShapes, track: Track, images: Mapping[int, np.ndarray
             ax.set_xlim(*ax.get_xlim()[::-1])
             title = f"{name} · mirrored {frame}"
         ax.set_title(title, fontsize=9, color=_rgb(palette[region]) if region else "black")
+        if key is not None and descriptions:  # what the key is, under its picture
+            ax.set_xlabel(textwrap.fill(descriptions[key], 36), fontsize=7, color="#333333", linespacing=1.1)
     for ax in axes[len(tiles):]:
         ax.set_axis_off()
     return _save(figure, path)

@@ -70,6 +70,9 @@ class Take:
     video_times : tuple of float
         The time in the source video of every frame (the track's ``time``: a take tracked from
         ``--start`` or with a variable frame rate is not ``frame / fps``); empty without a track.
+    key_descriptions : dict of str to str
+        A readable line per key shape (its region word and nearest ARKit expressions, see
+        :func:`keyshape.report.describe_keys`), by key name; empty without keys.json or a track.
     """
 
     folder: Path
@@ -82,6 +85,7 @@ class Take:
     key_regions: dict[str, str] = field(default_factory=dict)
     animation: str = "animation.glb"
     video_times: tuple[float, ...] = ()
+    key_descriptions: dict[str, str] = field(default_factory=dict)
 
     def as_json(self) -> dict:
         """The page's view of the take: numbers, URLs of the files, key frames."""
@@ -92,6 +96,7 @@ class Take:
                 "animation": f"/media/{self.animation}",
                 "files": {name: f"/media/{name}" for name in self.files},
                 "key_frames": self.key_frames, "key_regions": self.key_regions,
+                "key_descriptions": self.key_descriptions,
                 "video_times": list(self.video_times) if len(self.video_times) == self.n_frames else None}
 
 
@@ -122,20 +127,43 @@ def load_take(folder: str | Path) -> Take:
     check_gltf_file(files[animation])
     video = Path(info["video"]) if info.get("video") else None
     keys_name = Path(listed.get("keys", "keys.json")).name
-    track = files.get(Path(listed.get("track", "track.npz")).name)
+    track_name = Path(listed.get("track", "track.npz")).name
+    track = _track(files.get(track_name))
     frames, regions = _keys(files.get(keys_name), video)
+    times = () if track is None else tuple(round(float(t), 6) for t in track.time)
+    described = _descriptions(files.get(keys_name), track, (video.name if video else "", track_name),
+                              files.get(Path(listed.get("weights", "weights.csv")).name))
     return Take(folder, float(fps), n_frames, info.get("neutral_frame"),
                 video if video is not None and video.is_file() else None, files,
-                frames, regions, animation, _video_times(track))
+                frames, regions, animation, times, described)
 
 
-def _video_times(track: Path | None) -> tuple[float, ...]:
-    """The source time of every frame of the take's track (checked as every reader checks it)."""
-    if track is None:
-        return ()
+def _track(path: Path | None):
+    """The take's track (checked as every reader checks it); None without one."""
+    if path is None:
+        return None
     from ..io.track import load_track
 
-    return tuple(round(float(t), 6) for t in load_track(track).time)
+    return load_track(path)
+
+
+def _descriptions(path: Path | None, track, take: tuple[str, str], weights: Path | None) -> dict[str, str]:
+    """``{key: readable line}`` from ``keys.json`` and the take's track (and ``weights.csv``, for the
+    keys of another take); empty without the keys or the track."""
+    if path is None or track is None:
+        return {}
+    from ..io.keys_json import load_keys
+    from ..io.weights_csv import load_weights_csv
+    from ..report import describe_keys
+
+    try:
+        keys = load_keys(path)
+        solved = load_weights_csv(weights) if weights is not None else None
+    except InputError:
+        return {}  # the key file is a nicety here, as in _keys
+    if keys.n_landmarks != track.n_landmarks:
+        return {}
+    return dict(zip(keys.names, describe_keys(keys, track, take=take, weights=solved)))
 
 
 def _keys(path: Path | None, video: Path | None) -> tuple[dict[str, int], dict[str, str]]:
