@@ -349,7 +349,7 @@ def _run_take(video: str | Path, outdir: str | Path, options: RunOptions, *, pro
     announce("driving the character" + (" (proposing its targets)" if options.auto_targets else ""))
     rig, mapping, keep_file, auto, remade = _rig_and_mapping(options, keys, scores, loaded_rig)
     refinement = None
-    if auto is not None and auto.route == "mapping" and options.refine:
+    if auto is not None and auto.route == "mapping" and options.refine and auto.correspondence is not None:
         refinement = _refined(auto, options, track, solved.weights, progress)
         mapping = refinement.mapping if refinement is not None else mapping
     from ..io.take import record_written, written_by
@@ -359,7 +359,8 @@ def _run_take(video: str | Path, outdir: str | Path, options: RunOptions, *, pro
         announce("writing the animation and the take's files")
         _write_outputs(stage, video, track, keys, solved, rig, mapping, options, keep_file, remade)
         if auto is not None:  # the proposal, to check, edit and reuse (--map / --correspondence)
-            auto.correspondence.save(stage / "correspondence.json")
+            if auto.correspondence is not None:  # None for a VRM avatar (its scores alone)
+                auto.correspondence.save(stage / "correspondence.json")
             if auto.route == "mapping":
                 mapping.save(stage / "map.json", refined=_refined_note(refinement))
         if options.extras:

@@ -348,11 +348,11 @@ def _score_mapping(keys: KeyShapes, rig: Rig, corr: Correspondence, scores: KeyS
     table = _score_channels(scores.names, rig.names) * allowed[:, None]
     neutral = np.clip(table @ np.nan_to_num(np.asarray(scores.neutral, dtype=float)), 0, 1)
     rest = getattr(corr, "rest_scores", None)
+    region = _target_regions(keys, rig, corr) if corr is not None else _regions_by_name(keys, rig.names)
     at_rest = np.zeros(len(rig.names))
     if rest:
         at_rest = np.clip(table @ np.array([float(rest.get(n, 0.0)) for n in scores.names]), 0, 1)
         neutral = np.clip(neutral - at_rest, 0, 1)
-    region = _target_regions(keys, rig, corr)
     own = region[:, None] == np.asarray(keys.key_regions)[None, :]  # (n_targets, n_keys)
     if scores.take is not None and scores.weights is not None:
         fitted = _take_mapping(keys, rig, table, own, scores, at_rest)
@@ -401,6 +401,19 @@ def _take_mapping(keys: KeyShapes, rig: Rig, table: np.ndarray, own: np.ndarray,
                 break
             columns = columns[~small]
     return Mapping(gains, keys.names, rig.names, offset=offset)
+
+
+def _regions_by_name(keys: KeyShapes, names) -> np.ndarray:
+    """``(n_targets,)`` str: each ARKit target's key region by its name, without a correspondence:
+    ``eye*``, ``brow*`` and ``cheekSquint*`` go to the region holding the eyelids (MediaPipe's 159),
+    the rest to the one holding the lips (13); the first region when none holds them."""
+    regions = list(keys.regions)
+
+    def holding(landmark: int) -> str:
+        return next((r for r in regions if landmark in set(np.asarray(keys.regions[r]).tolist())), regions[0])
+
+    upper, lower = holding(159), holding(13)
+    return np.array([upper if str(n).lower().startswith(("eye", "brow", "cheeksquint")) else lower for n in names])
 
 
 def _target_regions(keys: KeyShapes, rig: Rig, corr: Correspondence) -> np.ndarray:
@@ -503,7 +516,8 @@ class AutoTargets:
     mapping : Mapping
         Keys → ``rig.names``: by name for the transfer route, the proposed gains for the mapping route.
     route : "transfer" or "mapping"
-    correspondence : Correspondence
+    correspondence : Correspondence or None
+        None for a VRM avatar (its mapping comes from the tracker's scores alone).
     """
 
     rig: Rig
@@ -563,6 +577,9 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
     """
     if route not in ("auto", "transfer", "mapping"):
         raise InputError(f"route must be 'auto', 'transfer' or 'mapping'; got {route!r}")
+    if isinstance(rig, (str, Path)) and Path(rig).suffix.lower() == ".vrm" and correspondence is None \
+            and route != "transfer":
+        return _vrm_targets(keys, Path(rig), scores)
     character, corr, rigid = _character(keys, rig, correspondence, unit, front, colours, meshes)
     if route == "mapping" or (route == "auto" and character.n_targets > 0):
         # gaze targets are not mapped from keys: they follow their scores (gaze_channels), or the
@@ -576,6 +593,29 @@ def auto_targets(keys: KeyShapes, rig=None, *, correspondence=None, route: Route
     else:
         proposed = propose_targets(keys, character, correspondence=corr, rigid=rigid, falloff=falloff)
     return AutoTargets(proposed, Mapping.by_name(keys.names, proposed.names), "transfer", corr)
+
+
+def _vrm_targets(keys: KeyShapes, path: Path, scores: KeyScores | None) -> AutoTargets:
+    """A VRM avatar's mapping from the scores alone (no correspondence: ``correspondence`` None).
+
+    A perfect-sync avatar (ARKit-named targets) takes the ARKit score route, each target's region
+    by its name (:func:`_regions_by_name`), its gaze targets on their channels; a standard one its
+    vowels, blinks and looks (:func:`keyshape.targets._vrm.vrm_mapping`).
+    """
+    from ..io.rig import load_rig
+    from ._vrm import vrm_mapping
+
+    avatar = load_rig(path)
+    if scores is None:
+        raise InputError(f"{path}: automatic targets onto a VRM avatar need the tracker's ARKit scores "
+                         "(a MediaPipe track); give a mapping (--map) instead")
+    if _score_channels(scores.names, avatar.names).any():
+        allowed = ~_excluded(avatar.names, GAZE_TARGETS)
+        mapping = _score_mapping(keys, avatar, None, scores, allowed)
+        mapping = replace(mapping, gaze=gaze_channels(scores.names, avatar.names))
+    else:
+        mapping = vrm_mapping(keys, avatar.names, scores)
+    return AutoTargets(avatar, mapping, "mapping", None)
 
 
 def _eyes_on_nodes(rig) -> bool:
