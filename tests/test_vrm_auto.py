@@ -101,19 +101,20 @@ def test_vowels_of_a_prototype_are_that_vowel():
 
 @pytest.mark.slow
 @pytest.mark.validator
-@pytest.mark.parametrize("version", ["1.0", "0.x"])
-def test_run_auto_targets_on_a_vrm_avatar(demo_clip, tmp_path, version):
+@pytest.mark.parametrize("version, sync", [("1.0", False), ("0.x", False), ("1.0", True)])
+def test_run_auto_targets_on_a_vrm_avatar(demo_clip, tmp_path, version, sync):
     """The real clip through `run --rig avatar.vrm --auto-targets`: map.json over the avatar's names (gains
     >= 0, vowels and blinks driven, emotions not), animation.vrma carrying it, valid for Khronos."""
     from test_vrma import expression_track, read_vrma
 
     from keyshape.cli import main
     from keyshape.io import load_weights_csv
+    from keyshape.io.rig import load_rig
     from keyshape.targets import Mapping, retarget
 
     from gltf_validator import validate
 
-    avatar = make_vrm(tmp_path / "avatar.vrm", version, skeleton=True)
+    avatar = make_vrm(tmp_path / "avatar.vrm", version, skeleton=True, perfect_sync=sync)
     out = tmp_path / "take"
     assert main(["run", str(demo_clip), "--rig", str(avatar.path), "--auto-targets", "--no-preview",
                  "-o", str(out), "-q"]) == 0
@@ -122,14 +123,20 @@ def test_run_auto_targets_on_a_vrm_avatar(demo_clip, tmp_path, version):
         if version == "1.0" else (("A", "I", "U", "E", "O"), ("Blink", "Blink_L", "Blink_R"), "Joy")
     gains = json.loads((out / "map.json").read_text())["gains"]
     driven = {t for row in gains.values() for t in row}
-    assert driven & set(vowels) and driven & set(blinks) and joy not in driven and driven <= set(avatar.expressions)
+    if sync:  # the ARKit route: its ARKit targets, not the presets
+        assert "jawOpen" in driven and not driven & {*vowels, *blinks, joy}
+        vowels = ("jawOpen",)
+    else:
+        assert driven & set(vowels) and driven & set(blinks)
+    assert driven & set(vowels) and joy not in driven and driven <= set(load_rig(avatar.path).names)
     assert (mapping.matrix >= 0).all() and not (out / "correspondence.json").exists()
     extension, tracks, _ = read_vrma(out / "animation.vrma")
     weights = load_weights_csv(out / "weights.csv")
     anim = retarget(weights, mapping)
-    spelled = dict(zip(vowels, ("aa", "ih", "ou", "ee", "oh")))
+    spelled = dict(zip(vowels, ("aa", "ih", "ou", "ee", "oh") if not sync else ("jawOpen",)))
     for name in sorted(driven & set(vowels)):
-        np.testing.assert_allclose(expression_track(extension, tracks, "preset", spelled[name]),
+        group = "custom" if sync else "preset"
+        np.testing.assert_allclose(expression_track(extension, tracks, group, spelled[name]),
                                    np.clip(anim.values[:, anim.names.index(name)], 0, 1), atol=1e-5)
     glb = tmp_path / "animation.glb"
     glb.write_bytes((out / "animation.vrma").read_bytes())
