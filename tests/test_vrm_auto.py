@@ -142,3 +142,19 @@ def test_run_auto_targets_on_a_vrm_avatar(demo_clip, tmp_path, version, sync):
     glb.write_bytes((out / "animation.vrma").read_bytes())
     report = validate(glb)
     assert report["numErrors"] == 0, report["messages"]
+
+
+def test_keys_of_another_take_read_off_the_take():
+    """Keys whose frames are not in the take (NaN scores there): each key's change comes from the take's
+    scores regressed on its weights, so a jaw key still drives `aa` by the jaw's change per unit weight."""
+    from keyshape.targets._vrm import vrm_mapping
+
+    keys, scores = _keys_and_scores()
+    rng = np.random.default_rng(5)
+    weights = rng.random((60, keys.n_keys))
+    take = scores.neutral[None] + weights @ (scores.keys - scores.neutral[None])
+    reused = KeyScores(np.full(len(SCORES), np.nan), np.full(scores.keys.shape, np.nan), SCORES, take, weights)
+    direct, fitted = vrm_mapping(keys, ["aa", "ih", "ou", "ee", "oh", "blink"], scores), \
+        vrm_mapping(keys, ["aa", "ih", "ou", "ee", "oh", "blink"], reused)
+    np.testing.assert_allclose(fitted.matrix, direct.matrix, atol=1e-6)
+    assert _gain(fitted, "lower_jaw", "aa") > 0.3

@@ -114,7 +114,8 @@ def vrm_mapping(keys: KeyShapes, rig_names, scores) -> Mapping:
     rig_names : sequence of str
         The avatar's targets (its expression names, :func:`keyshape.io.rig.load_rig` of a ``.vrm``).
     scores : KeyScores or None
-        The tracker's ARKit scores at the key frames; None or NaN (keys of another take): no gains.
+        The tracker's ARKit scores at the key frames; for keys of another take (NaN there), the
+        take's scores and weights stand in (:func:`_score_changes`); None: no gains.
 
     Returns
     -------
@@ -127,8 +128,7 @@ def vrm_mapping(keys: KeyShapes, rig_names, scores) -> Mapping:
     gaze = ()
     if scores is not None:
         score_names = tuple(str(n) for n in scores.names)
-        change = np.clip(np.nan_to_num(np.asarray(scores.keys, float) - np.asarray(scores.neutral, float)[None]),
-                         0, None)  # (n_keys, n_scores)
+        change = _score_changes(scores)  # (n_keys, n_scores)
         mouth = _keys_of_regions(keys, MOUTH_LANDMARKS)
         eyes = _keys_of_regions(keys, EYE_LANDMARKS)
         vowels = vowel_weights(mouth_features(change, score_names))  # (n_keys, 5)
@@ -145,6 +145,22 @@ def vrm_mapping(keys: KeyShapes, rig_names, scores) -> Mapping:
                      if look in spelling and score in score_names)
     gains[gains < SMALLEST_GAIN] = 0.0
     return Mapping(gains, keys.names, names, gaze=gaze)
+
+
+def _score_changes(scores) -> np.ndarray:
+    """``(n_keys, n_scores)``: each key's ``max(s(key) − s(neutral), 0)``; for keys of another take (no
+    scores at their frames, NaN) but a take with solved weights, the change per unit key weight that a
+    least-squares fit of the take's scores on its weights gives, ``s(f) ≈ c + Σ_k w_k(f) d_k``."""
+    keys, neutral = np.asarray(scores.keys, float), np.asarray(scores.neutral, float)
+    change = keys - neutral[None]
+    missing = ~np.isfinite(change).all(axis=1)
+    if missing.any() and scores.take is not None and scores.weights is not None:
+        S, W = np.asarray(scores.take, float), np.asarray(scores.weights, float)
+        ok = np.isfinite(S).all(axis=1) & np.isfinite(W).all(axis=1)
+        if W.shape == (len(S), len(keys)) and ok.sum() > len(keys) + 1:
+            X = np.column_stack([np.ones(int(ok.sum())), W[ok]])
+            change[missing] = np.linalg.lstsq(X, S[ok], rcond=None)[0][1:][missing]
+    return np.clip(np.nan_to_num(change), 0, None)
 
 
 def _keys_of_regions(keys: KeyShapes, landmarks) -> np.ndarray:
