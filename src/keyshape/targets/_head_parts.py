@@ -6,9 +6,10 @@
   (``eyeLookInLeft`` ... ``eyeLookDownRight``), each a rotation of ``GAZE_DEGREES``
   (:func:`gaze_deltas`); :func:`gaze_weights` turns the tracker's yaw and pitch into them.
 * **Mouth interior** (:func:`mouth_parts`): a dark cavity behind the lips (its triangles face
-  inward), a row of upper teeth, a row of lower teeth and a tongue. At rest the closed lips
-  hide them; the lower teeth, the tongue and the cavity's floor follow the jaw
-  (:func:`jaw_deltas`: the rigid motion, Umeyama 1991, of the chin and lower-lip landmarks).
+  inward, its front flattened behind the teeth), a row of upper teeth, a row of lower teeth and a
+  tongue. At rest the closed lips hide them; the lower teeth, the tongue and the cavity's floor
+  follow the jaw (:func:`jaw_deltas`: the rigid motion, Umeyama 1991, of the chin and lower-lip
+  landmarks), the upper teeth and the cavity's roof the upper lip.
 * **Colours** (:func:`skin_colours`): skin, lips inside MediaPipe's outer lip contour, brows
   along its brow contours, hair over the cranium, a blush on the cheeks; smoothed over the mesh.
 
@@ -28,7 +29,8 @@ import numpy as np
 
 from ..alignment import procrustes
 
-__all__ = ["GAZE_DEGREES", "GAZE_NAMES", "JAW_LANDMARKS", "UPPER_LANDMARKS", "eyeball", "gaze_deltas", "gaze_weights", "jaw_deltas", "mouth_parts",
+__all__ = ["GAZE_DEGREES", "GAZE_NAMES", "JAW_LANDMARKS", "UPPER_LANDMARKS", "eyeball", "gaze_deltas", "gaze_weights",
+           "jaw_deltas", "mouth_parts",
            "skin_colours"]
 
 SKIN = (0.95, 0.74, 0.60)
