@@ -6,9 +6,10 @@
   (``eyeLookInLeft`` ... ``eyeLookDownRight``), each a rotation of ``GAZE_DEGREES``
   (:func:`gaze_deltas`); :func:`gaze_weights` turns the tracker's yaw and pitch into them.
 * **Mouth interior** (:func:`mouth_parts`): a dark cavity behind the lips (its triangles face
-  inward), a row of upper teeth, a row of lower teeth and a tongue. At rest the closed lips
-  hide them; the lower teeth, the tongue and the cavity's floor follow the jaw
-  (:func:`jaw_deltas`: the rigid motion, Umeyama 1991, of the chin and lower-lip landmarks).
+  inward, its front flattened behind the teeth), a row of upper teeth, a row of lower teeth and a
+  tongue. At rest the closed lips hide them; the lower teeth, the tongue and the cavity's floor
+  follow the jaw (:func:`jaw_deltas`: the rigid motion, Umeyama 1991, of the chin and lower-lip
+  landmarks), the upper teeth and the cavity's roof the upper lip.
 * **Colours** (:func:`skin_colours`): skin, lips inside MediaPipe's outer lip contour, brows
   along its brow contours, hair over the cranium, a blush on the cheeks; smoothed over the mesh.
 
@@ -28,7 +29,8 @@ import numpy as np
 
 from ..alignment import procrustes
 
-__all__ = ["GAZE_DEGREES", "GAZE_NAMES", "eyeball", "gaze_deltas", "gaze_weights", "jaw_deltas", "mouth_parts",
+__all__ = ["GAZE_DEGREES", "GAZE_NAMES", "JAW_LANDMARKS", "UPPER_LANDMARKS", "eyeball", "gaze_deltas", "gaze_weights",
+           "jaw_deltas", "mouth_parts",
            "skin_colours"]
 
 SKIN = (0.95, 0.74, 0.60)
@@ -51,6 +53,10 @@ GAZE_NAMES = tuple(f"eyeLook{d}{side}" for side in ("Left", "Right") for d in ("
 # landmarks that move with the jaw: the lower lip (inner and outer) and the chin, not the corners
 JAW_LANDMARKS = (14, 87, 178, 88, 95, 317, 402, 318, 324, 17, 84, 181, 91, 146, 314, 405, 321, 375,
                  152, 148, 176, 377, 400, 199, 175, 200, 18)
+# landmarks the upper teeth and the cavity's roof follow: the upper lip (inner and outer) and the
+# philtrum, not the corners (a key that moves the whole mouth back must take the upper teeth along,
+# or they poke through the lips)
+UPPER_LANDMARKS = (13, 82, 81, 80, 312, 311, 310, 0, 37, 39, 40, 267, 269, 270, 164)
 
 _PUPIL_DEG, _IRIS_DEG = 9.5, 23.0
 _EYE_RINGS = (3.0, 6.0, 8.5, 10.0, 12.5, 16.0, 19.5, 21.5, 23.0, 24.0, 27.0, 33.0, 42.0, 55.0, 70.0, 90.0,
@@ -138,15 +144,25 @@ def mouth_parts(inner_lip: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray
     def arc_z(x):
         return np.interp(x, xs, zs) - 0.0045
 
+    cavity = _ellipsoid(np.array([0.0, mid_y - 0.004, front - 0.022]), (0.9 * half_width, 0.017, 0.02),
+                        CAVITY, inward=True)
+    # the cavity's front flattened behind the teeth (its dome would stand in front of them, leaving
+    # only their corners showing, fang-like): at most _TEETH_CLEARANCE behind the teeth rows' backs
+    cavity[0][:, 2] = np.minimum(cavity[0][:, 2], arc_z(cavity[0][:, 0]) - _LOWER_BACK - _TOOTH_DEPTH
+                                 - _TEETH_CLEARANCE)
     parts = {
-        "cavity": _ellipsoid(np.array([0.0, mid_y - 0.004, front - 0.022]), (0.9 * half_width, 0.017, 0.02),
-                             CAVITY, inward=True),
+        "cavity": cavity,
         "upper_teeth": _teeth(arc_z, 0.62 * half_width, mid_y - 0.0015, mid_y + 0.0075, 0.0),
-        "lower_teeth": _teeth(arc_z, 0.56 * half_width, mid_y - 0.0085, mid_y - 0.0022, -0.0016),
+        "lower_teeth": _teeth(arc_z, 0.56 * half_width, mid_y - 0.0085, mid_y - 0.0022, -_LOWER_BACK),
         "tongue": _ellipsoid(np.array([0.0, mid_y - 0.0085, front - 0.019]), (0.5 * half_width, 0.0045, 0.013),
                              TONGUE),
     }
     return parts
+
+
+_TOOTH_DEPTH = 0.0028  # front to back of a tooth (m)
+_LOWER_BACK = 0.0016  # the lower row sits this far behind the upper
+_TEETH_CLEARANCE = 0.001
 
 
 def _teeth(arc_z, half_width: float, bottom: float, top: float, back: float, *, n: int = 8):
@@ -157,7 +173,7 @@ def _teeth(arc_z, half_width: float, bottom: float, top: float, back: float, *, 
         x0, x1 = edges[i] + 0.00025, edges[i + 1] - 0.00025
         z0, z1 = arc_z(x0) + back, arc_z(x1) + back
         tangent = np.array([x1 - x0, 0.0, z1 - z0])
-        normal = np.cross([0.0, 1.0, 0.0], tangent / np.linalg.norm(tangent)) * 0.0028  # depth, backward
+        normal = np.cross([0.0, 1.0, 0.0], tangent / np.linalg.norm(tangent)) * _TOOTH_DEPTH  # backward
         front = np.array([[x0, 0, z0], [x1, 0, z1]])
         corners = np.array([p + [0, y, 0] + d for d in (np.zeros(3), normal) for p in front for y in (bottom, top)])
         faces.append(_BOX + 8 * i)

@@ -44,7 +44,7 @@ from ..exceptions import InputError, RigError
 from ._character import stylised_head
 from ._correspond import Correspondence, read_correspondence
 from ._correspond_auto import NoFaceFound, find_correspondence
-from ._head_parts import JAW_LANDMARKS, jaw_deltas
+from ._head_parts import JAW_LANDMARKS, UPPER_LANDMARKS, jaw_deltas
 from ._mapping import SMALLEST_GAIN, Mapping, bounded_row
 from ._transfer import landmark_motion, spread, transfer_expressions
 
@@ -156,19 +156,27 @@ def _at_amplitude(keys: KeyShapes, field: np.ndarray, landmark_vertices: np.ndar
 
 
 def _with_interior(head, field: np.ndarray) -> np.ndarray:
-    """The head's deltas with its mouth interior following the jaw (the skin's and the eyes' as given)."""
-    jaw = np.asarray(JAW_LANDMARKS)
-    ids = head.landmark_vertices[jaw]
-    points, moving = head.rig.vertices[ids], field[:, ids]
+    """The head's deltas with its mouth interior following the lips (the skin's and the eyes' as given).
+
+    The lower teeth, the tongue and the cavity's floor take the rigid motion of the jaw's
+    landmarks; the upper teeth and the cavity's roof that of the upper lip's. Keys often move the
+    whole mouth (the actor's residual head motion is in them): upper teeth held still would then
+    stand in front of lips moved back.
+    """
+    def motion(landmarks, part, weights):
+        ids = head.landmark_vertices[np.asarray(landmarks)]
+        return jaw_deltas(head.rig.vertices[part], field[:, ids], head.rig.vertices[ids], weights)
+
     out = field.copy()
     for name in ("lower_teeth", "tongue"):
-        part = head.parts[name]
-        out[:, part] = jaw_deltas(head.rig.vertices[part], moving, points, np.ones(len(part)))
+        out[:, head.parts[name]] = motion(JAW_LANDMARKS, head.parts[name], np.ones(len(head.parts[name])))
+    teeth = head.parts["upper_teeth"]
+    out[:, teeth] = motion(UPPER_LANDMARKS, teeth, np.ones(len(teeth)))
     cavity = head.parts["cavity"]
     y = head.rig.vertices[cavity, 1]
-    floor = np.clip((y.max() - y) / np.ptp(y) * 1.6 - 0.3, 0.0, 1.0)  # the roof stays, the floor follows
-    out[:, cavity] = jaw_deltas(head.rig.vertices[cavity], moving, points, floor)
-    for name in ("left_eye", "right_eye", "upper_teeth"):
+    floor = np.clip((y.max() - y) / np.ptp(y) * 1.6 - 0.3, 0.0, 1.0)  # the roof follows the upper lip
+    out[:, cavity] = motion(JAW_LANDMARKS, cavity, floor) + motion(UPPER_LANDMARKS, cavity, 1 - floor)
+    for name in ("left_eye", "right_eye"):
         out[:, head.parts[name]] = 0.0
     return out
 
