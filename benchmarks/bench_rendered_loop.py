@@ -1,4 +1,4 @@
-"""The rendered closed loop on ICT-FaceKit: a real performance, rendered, tracked, and put back on the rig.
+"""The rendered closed loop: a real performance, rendered, tracked, and put back on the rig.
 
 1. **Truth.** ICT-FaceKit (57 ARKit-style shapes) is driven by a real person's timing and
    co-activation: MediaPipe's 52 ARKit scores of the embedded clip (``WolfgangLanger_Pexels.mp4``,
@@ -18,6 +18,9 @@
      ``map.json``, the gaze targets following the gaze scores frame by frame);
    * ``mediapipe``: MediaPipe's own 52 scores of the rendered video driving the same rig (the peer's
      naive path);
+   * ``mediapipe less rest``: the same less MediaPipe's reading of the character at rest (its still
+     render, :func:`rest_reading`), clipped at 0; ``mediapipe less neutral``: less the scores of the
+     key set's neutral frame instead (the peer's path with a calibration);
    * ``oracle (>= 0)``: the best non-negative key → shape mapping, fitted on the truth from the same
      solved key weights (what a perfect proposal could reach);
    * ``oracle (signed + constant)``: the same with signed gains and a constant term.
@@ -30,8 +33,13 @@
    larger, mouth 25 % wider, nose 20 % smaller, chin shorter; every target warped with it), so the
    character's proportions differ from the performer's; the truth is the same weights on it.
 
+7. **Another rig family** (``--family rpm``, :func:`rpm_loop`): a Ready Player Me avatar
+   (``../shared/data/rpm/``: a skinned, textured full body; another mesh, other sculpted shapes,
+   textures instead of vertex colours), rendered with its texture colours and scored on its head.
+
     python benchmarks/bench_rendered_loop.py                          # ../shared/data/ict-facekit
-    python benchmarks/bench_rendered_loop.py --out /tmp/loop --keep   # keep the video and the run
+    python benchmarks/bench_rendered_loop.py --out /tmp/loop          # keep the video and the runs
+    python benchmarks/bench_rendered_loop.py --family rpm             # ../shared/data/rpm/RPM_Template_Mesh_XR.glb
 
 The whole loop takes about two minutes on two cores.
 """

@@ -58,6 +58,11 @@ def add_arguments(p) -> None:
                         "as driven, tracked again, and the jaw, lower lip, squint, outer brow and pucker targets "
                         "refined on the landmarks; one more tracking pass per target, about 9). Faster, "
                         "and those targets follow MediaPipe's scores alone")
+    p.add_argument("--no-floor", dest="floor", action="store_false",
+                   help="with --auto-targets on an ARKit rig: every target through the key weights, as before "
+                        "issue 35; by default each target follows MediaPipe's own score less the character's "
+                        "rest reading, unless render and compare shows the keys or its refinement explain the "
+                        "video better (map.json's refined steps say which)")
     add_capture_options(p)
     add_visibility_option(p)
     p.add_argument("-o", "--output", type=Path, default=None, metavar="OUTDIR",
@@ -82,8 +87,10 @@ def add_format_option(p) -> None:
 
 def check(parser, args) -> None:
     """Usage errors argparse cannot see (exit code 2); fills in the default output folder."""
-    if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine):
-        parser.error("--correspondence, --front, --normalize and --no-refine only apply with --auto-targets")
+    if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine
+                                  or not args.floor):
+        parser.error("--correspondence, --front, --normalize, --no-refine and --no-floor only apply with "
+                     "--auto-targets")
     if is_track_file(args.video):
         parser.error(track_file_message(args.video))
     if args.output is None:
@@ -116,7 +123,8 @@ def run(args) -> None:
                          n_keys=args.count, max_error=args.max_error, method=args.method,
                          mirror=args.mirror, neutral=args.neutral, auto_targets=args.auto_targets,
                          correspondence=args.correspondence, front=args.front, normalize=args.normalize,
-                         refine=args.refine, capture=capture_kwargs(args), preview=not args.no_preview,
+                         refine=args.refine, floor=args.floor, capture=capture_kwargs(args),
+                         preview=not args.no_preview,
                          formats=tuple(args.formats),
                          **solve_kwargs(args))
     with stage_lines(args):
