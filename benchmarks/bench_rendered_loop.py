@@ -305,8 +305,9 @@ class Loop:
 
 
 def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = None,
-                  second_head: bool = False, transfer: bool = False) -> dict[str, Loop]:
-    """Run the loop of the module docstring on ICT, writing the video and the runs under ``out``.
+                  second_head: bool = False, transfer: bool = False, floor: bool = False) -> dict[str, Loop]:
+    """Run the loop of the module docstring on ICT, writing the video and the runs under ``out``
+    (``floor``: ``run --floor``).
 
     Returns ``{"ICT": Loop}`` and, with ``second_head``, ``"caricature"`` too.
     """
@@ -324,7 +325,7 @@ def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = Non
     character = as_it_looks(rig, colours, out / "ict.glb")
     rest = rest_reading(rig, stage, out / "ict_rest.mp4")
     loops = {"ICT": _run_and_score(video, character, rig, vertex_sets(rig, landmarks), truth, out / "run", start,
-                                   rest, transfer)}
+                                   rest, transfer, floor=floor)}
     if second_head:
         start = time.perf_counter()
         other = caricature(rig, landmarks)
@@ -332,7 +333,7 @@ def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = Non
         rest = rest_reading(other, ict_stage(other, colours), out / "caricature_rest.mp4")
         loops["caricature"] = _run_and_score(video, character, other, vertex_sets(other, landmarks), truth,
                                              out / "run_caricature", start, rest, transfer,
-                                             track=load_track(out / "run" / "track.npz"))
+                                             track=load_track(out / "run" / "track.npz"), floor=floor)
     return loops
 
 
@@ -340,7 +341,7 @@ RPM = SHARED.parent / "rpm"
 RPM_HEAD = "Wolf3D_Head"
 
 
-def rpm_loop(glb: Path, out: Path, *, performance: Path | None = None) -> dict[str, Loop]:
+def rpm_loop(glb: Path, out: Path, *, performance: Path | None = None, floor: bool = False) -> dict[str, Loop]:
     """The loop on a Ready Player Me avatar (``glb``: a skinned, textured full body, 52 ARKit targets).
 
     The meshes with morph targets (head, eyes, teeth; in their bind pose, as the file stores
@@ -364,7 +365,8 @@ def rpm_loop(glb: Path, out: Path, *, performance: Path | None = None) -> dict[s
     stage = Stage(faces, sets["face"], rig.vertices[head].mean(axis=0), rgba[:, :3])
     video = render_video(rig, truth, rotations, out / f"{glb.stem}.mp4", source.fps, stage)
     rest = rest_reading(rig, stage, out / f"{glb.stem}_rest.mp4")
-    return {glb.stem: _run_and_score(video, glb, rig, sets, truth, out / f"run_{glb.stem}", start, rest)}
+    return {glb.stem: _run_and_score(video, glb, rig, sets, truth, out / f"run_{glb.stem}", start, rest,
+                                     floor=floor)}
 
 
 def head_vertices(glb: Path) -> np.ndarray:
@@ -405,7 +407,7 @@ def as_it_looks(rig, colours: np.ndarray, path: Path) -> Path:
 
 
 def _run_and_score(video: Path, rig_file: Path, rig, sets: dict, truth: np.ndarray, run: Path, start: float,
-                   rest: dict, transfer: bool = False, track=None) -> Loop:
+                   rest: dict, transfer: bool = False, track=None, floor: bool = False) -> Loop:
     """``keyshape run VIDEO --rig RIG --auto-targets``, its result and the other routes scored on ``rig``
     (the same run with ``--no-refine`` too, on its track); ``rest``: MediaPipe's reading of the
     character at rest (:func:`rest_reading`), ``sets``: the vertex sets scored; ``track``: the video's
@@ -414,8 +416,8 @@ def _run_and_score(video: Path, rig_file: Path, rig, sets: dict, truth: np.ndarr
     from keyshape.io import load_keys, load_track, load_weights_csv
     from keyshape.io.gltf import read_glb_animation
 
-    summary = run_take(video, run, RunOptions(rig=rig_file, auto_targets=True, preview=False, extras=False),
-                       progress=False, track=track)
+    summary = run_take(video, run, RunOptions(rig=rig_file, auto_targets=True, floor=floor, preview=False,
+                                              extras=False), progress=False, track=track)
     tracked = load_track(run / "track.npz")
     key_weights = load_weights_csv(run / "weights.csv")
     written = read_glb_animation(run / "animation.glb")  # the keyshape animation, as a viewer plays it
@@ -429,7 +431,7 @@ def _run_and_score(video: Path, rig_file: Path, rig, sets: dict, truth: np.ndarr
                  "mediapipe less neutral": np.clip(scores - neutral, 0, 1) @ table.T}
     # the same take without render and compare: the targets follow MediaPipe's scores alone
     run_take(video, run.with_name(run.name + "_no_refine"), RunOptions(rig=rig_file, auto_targets=True, refine=False,
-                                                                        preview=False, extras=False),
+                                                                        floor=floor, preview=False, extras=False),
              progress=False, track=tracked)
     plain = read_glb_animation(run.with_name(run.name + "_no_refine") / "animation.glb")
     estimates["keyshape, --no-refine"] = np.column_stack([plain.weights[:, plain.names.index(n)] for n in rig.names])
@@ -505,6 +507,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=None, help="folder for the video and the run (default: temporary)")
     parser.add_argument("--json", type=Path, default=None, help="also write the scores here")
     parser.add_argument("--no-second-head", action="store_true", help="only ICT itself as the character")
+    parser.add_argument("--floor", action="store_true", help="the runs with run --floor (issue 35)")
     parser.add_argument("--transfer", action="store_true",
                         help="also score the transfer route (each head with its shapes dropped; ICT only)")
     args = parser.parse_args(argv)
@@ -514,11 +517,11 @@ def main(argv=None) -> None:
         out = args.out or Path(scratch)
         out.mkdir(parents=True, exist_ok=True)
         if args.family == "rpm":
-            loops = rpm_loop(args.rpm, out, performance=args.performance)
+            loops = rpm_loop(args.rpm, out, performance=args.performance, floor=args.floor)
         else:
             folder = extract_ict(args.ict, out / "ict")
             loops = rendered_loop(folder, out, performance=args.performance, second_head=not args.no_second_head,
-                                  transfer=args.transfer)
+                                  transfer=args.transfer, floor=args.floor)
     print("| character | route | face area | upper | lower |")
     print("|---|---|---|---|---|")
     for character, loop in loops.items():

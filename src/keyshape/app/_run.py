@@ -59,7 +59,7 @@ class RunOptions:
     front: str = "auto"  # auto_targets: the axis the character's face looks along (default: looked for)
     normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
     refine: bool = True  # auto_targets, score mapping: refine the targets the scores barely see (render and compare)
-    floor: bool = True  # auto_targets, score mapping: the scores less the rest reading, unless the evidence says better
+    floor: bool = False  # auto_targets, score mapping: start from the scores less the rest reading (issue 35)
     preview: bool = True
     extras: bool = True
     formats: tuple[str, ...] = ()  # the animation also as animation.<suffix>: "fbx", "blend", "usd"

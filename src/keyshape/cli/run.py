@@ -58,11 +58,11 @@ def add_arguments(p) -> None:
                         "as driven, tracked again, and the jaw, lower lip, squint, outer brow and pucker targets "
                         "refined on the landmarks; one more tracking pass per target, about 9). Faster, "
                         "and those targets follow MediaPipe's scores alone")
-    p.add_argument("--no-floor", dest="floor", action="store_false",
-                   help="with --auto-targets on an ARKit rig: every target through the key weights, as before "
-                        "issue 35; by default each target follows MediaPipe's own score less the character's "
-                        "rest reading, unless render and compare shows the keys or its refinement explain the "
-                        "video better (map.json's refined steps say which)")
+    p.add_argument("--floor", action="store_true",
+                   help="with --auto-targets on an ARKit rig: start from MediaPipe's own scores less the "
+                        "character's rest reading on every target, and keep the key route or its refinement "
+                        "only where render and compare shows it explains the video better (map.json's refined "
+                        "steps say which). Measured, not yet the default (BENCHMARKS.md, issue 35)")
     add_capture_options(p)
     add_visibility_option(p)
     p.add_argument("-o", "--output", type=Path, default=None, metavar="OUTDIR",
@@ -88,8 +88,8 @@ def add_format_option(p) -> None:
 def check(parser, args) -> None:
     """Usage errors argparse cannot see (exit code 2); fills in the default output folder."""
     if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine
-                                  or not args.floor):
-        parser.error("--correspondence, --front, --normalize, --no-refine and --no-floor only apply with "
+                                  or args.floor):
+        parser.error("--correspondence, --front, --normalize, --no-refine and --floor only apply with "
                      "--auto-targets")
     if is_track_file(args.video):
         parser.error(track_file_message(args.video))
