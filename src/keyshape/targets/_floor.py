@@ -7,7 +7,9 @@ follows its score frame by frame, less what the tracker reads on the character i
 floor: what a user gets without keyshape. The key route (the scores read through the key
 weights, :func:`~keyshape.targets._propose._take_mapping`, and render and compare,
 :func:`~keyshape.targets.refine_mapping`) replaces the floor on a target only where the
-take's own evidence says it helps (:func:`with_floor`).
+take's own evidence says it helps (:func:`with_floor`). Opt-in (``run --auto-targets --floor``):
+measured on the rendered loop (BENCHMARKS.md, issue 35) it is level on ICT-FaceKit and not yet
+never-worse on a Ready Player Me avatar, the family held out.
 
 Which step each target keeps is recorded in ``map.json``'s ``"refined"`` entry (``"steps"``).
 """
