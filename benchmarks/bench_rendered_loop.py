@@ -1,4 +1,4 @@
-"""The rendered closed loop on ICT-FaceKit: a real performance, rendered, tracked, and put back on the rig.
+"""The rendered closed loop: a real performance, rendered, tracked, and put back on the rig.
 
 1. **Truth.** ICT-FaceKit (57 ARKit-style shapes) is driven by a real person's timing and
    co-activation: MediaPipe's 52 ARKit scores of the embedded clip (``WolfgangLanger_Pexels.mp4``,
@@ -18,6 +18,9 @@
      ``map.json``, the gaze targets following the gaze scores frame by frame);
    * ``mediapipe``: MediaPipe's own 52 scores of the rendered video driving the same rig (the peer's
      naive path);
+   * ``mediapipe less rest``: the same less MediaPipe's reading of the character at rest (its still
+     render, :func:`rest_reading`), clipped at 0; ``mediapipe less neutral``: less the scores of the
+     key set's neutral frame instead (the peer's path with a calibration);
    * ``oracle (>= 0)``: the best non-negative key → shape mapping, fitted on the truth from the same
      solved key weights (what a perfect proposal could reach);
    * ``oracle (signed + constant)``: the same with signed gains and a constant term.
@@ -30,8 +33,13 @@
    larger, mouth 25 % wider, nose 20 % smaller, chin shorter; every target warped with it), so the
    character's proportions differ from the performer's; the truth is the same weights on it.
 
+7. **Another rig family** (``--family rpm``, :func:`rpm_loop`): a Ready Player Me avatar
+   (``../shared/data/rpm/``: a skinned, textured full body; another mesh, other sculpted shapes,
+   textures instead of vertex colours), rendered with its texture colours and scored on its head.
+
     python benchmarks/bench_rendered_loop.py                          # ../shared/data/ict-facekit
-    python benchmarks/bench_rendered_loop.py --out /tmp/loop --keep   # keep the video and the run
+    python benchmarks/bench_rendered_loop.py --out /tmp/loop          # keep the video and the runs
+    python benchmarks/bench_rendered_loop.py --family rpm             # ../shared/data/rpm/RPM_Template_Mesh_XR.glb
 
 The whole loop takes about two minutes on two cores.
 """
@@ -43,7 +51,7 @@ import json
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -146,31 +154,68 @@ def head_rotations(head_matrix: np.ndarray) -> np.ndarray:
     return (rotations * rest.inv()).as_matrix()
 
 
-def render_video(rig, weights: np.ndarray, rotations: np.ndarray, path: Path, fps: float, colours,
-                 *, size: int = 512, pivot=(0.0, 0.0, -0.02), turn_eyes: bool = True) -> Path:
-    """The rig posed frame by frame, turned by ``rotations`` about ``pivot``, as an MP4 ``size`` pixels square.
+@dataclass(frozen=True, eq=False)
+class Stage:
+    """How a head is shown in the loop's video.
 
-    With ``turn_eyes`` the eyeballs turn with the frame's gaze weights (:func:`eye_rotations`), as
-    an actor's do: ICT's ``eyeLook*`` targets move only the lids, so without it the irises stay
+    ``faces (n_faces, 3)``: the triangles drawn; ``framed (n,)``: the vertex ids the camera frames;
+    ``pivot (3,)``: what the head turns about; ``colours (n_vertices, 3)``; ``eyes``: ``(ids, centre)``
+    per eyeball turned by the gaze weights (ICT, whose ``eyeLook*`` targets move only the lids).
+    """
+
+    faces: np.ndarray
+    framed: np.ndarray
+    pivot: np.ndarray
+    colours: np.ndarray
+    eyes: tuple = ()
+
+
+def ict_stage(rig, colours: np.ndarray, *, turn_eyes: bool = True) -> Stage:
+    """ICT as the loop shows it: no translucent overlays, the face framed, the eyeballs turned."""
+    eyes = tuple((_part(side), _sphere_centre(rig.vertices[_part(side)])) for side in ("eyeball_left", "eyeball_right"))
+    return Stage(rendered_faces(rig.faces), _part("face"), np.array([0.0, 0.0, -0.02]), colours,
+                 eyes if turn_eyes else ())
+
+
+def render_video(rig, weights: np.ndarray, rotations: np.ndarray, path: Path, fps: float, stage,
+                 *, size: int = 512, turn_eyes: bool = True) -> Path:
+    """The rig posed frame by frame, turned by ``rotations`` about the stage's pivot, as an MP4 ``size`` pixels square.
+
+    ``stage``: a :class:`Stage`, or ICT's colours ``(n_vertices, 3)`` (:func:`ict_stage`, ``turn_eyes``).
+
+    With the stage's ``eyes`` the eyeballs turn with the frame's gaze weights (:func:`eye_rotations`),
+    as an actor's do: ICT's ``eyeLook*`` targets move only the lids, so without it the irises stay
     centred whatever the gaze, and the tracker reads the lids' shift as a look the other way.
     """
     from keyshape.render import frame_points, make_renderer
     from keyshape.render.encode import VideoWriter
 
-    pivot = np.asarray(pivot)
-    camera = frame_points(rig.vertices[_part("face")], margin=1.25)
-    faces = rendered_faces(rig.faces)
-    eyes = [(_part(side), _sphere_centre(rig.vertices[_part(side)])) for side in ("eyeball_left", "eyeball_right")]
-    turns = eye_rotations(weights, rig.names) if turn_eyes else None
-    with make_renderer(faces, size, size, n_vertices=rig.n_vertices, backend="gl", colours=colours) as renderer, \
-            VideoWriter(path, size, size, fps, crf=16) as out:
+    if not isinstance(stage, Stage):
+        stage = ict_stage(rig, stage, turn_eyes=turn_eyes)
+    pivot = np.asarray(stage.pivot)
+    camera = frame_points(rig.vertices[stage.framed], margin=1.25)
+    turns = eye_rotations(weights, rig.names) if stage.eyes else None
+    with make_renderer(stage.faces, size, size, n_vertices=rig.n_vertices, backend="gl",
+                       colours=stage.colours) as renderer, VideoWriter(path, size, size, fps, crf=16) as out:
         for f in range(len(weights)):
             posed = rig.pose(weights[f : f + 1])[0]
             if turns is not None:
-                for (ids, centre), turn in zip(eyes, turns[f]):
+                for (ids, centre), turn in zip(stage.eyes, turns[f]):
                     posed[ids] = (posed[ids] - centre) @ turn.T + centre
             out.write(renderer.render((posed - pivot) @ rotations[f].T + pivot, camera))
     return path
+
+
+def rest_reading(rig, stage: Stage, path: Path, *, n_frames: int = 15) -> dict:
+    """MediaPipe's scores ``{ARKit name: median score}`` of the character at rest, rendered as the loop
+    renders it (``n_frames`` still frames): how the tracker reads this face doing nothing."""
+    from keyshape.capture import track_video
+
+    still = np.zeros((n_frames, rig.n_targets))
+    render_video(rig, still, np.tile(np.eye(3), (n_frames, 1, 1)), path, 30.0, stage)
+    tracked = track_video(path, progress=False)
+    median = np.nanmedian(tracked.blendshapes, axis=0)
+    return {str(n): float(v) for n, v in zip(tracked.blendshape_names, median)}
 
 
 def eye_rotations(weights: np.ndarray, names, *, degrees: float = 30.0) -> np.ndarray:
@@ -256,11 +301,13 @@ class Loop:
     detection_rate: float
     n_keys: int
     seconds: float
+    steps: dict = field(default_factory=dict)  # map.json's refined "steps": the step each judged target keeps
 
 
 def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = None,
-                  second_head: bool = False, transfer: bool = False) -> dict[str, Loop]:
-    """Run the loop of the module docstring, writing the video and the runs under ``out``.
+                  second_head: bool = False, transfer: bool = False, floor: bool = False) -> dict[str, Loop]:
+    """Run the loop of the module docstring on ICT, writing the video and the runs under ``out``
+    (``floor``: ``run --floor``).
 
     Returns ``{"ICT": Loop}`` and, with ``second_head``, ``"caricature"`` too.
     """
@@ -273,16 +320,80 @@ def rendered_loop(rig_folder: Path, out: Path, *, performance: Path | None = Non
     truth = truth_from_scores(source.blendshapes, source.blendshape_names, rig.names)
     rotations = head_rotations(source.head_matrix)
     colours = ict_colours(rig.vertices, landmarks)
-    video = render_video(rig, truth, rotations, out / "ict.mp4", source.fps, colours)
+    stage = ict_stage(rig, colours)
+    video = render_video(rig, truth, rotations, out / "ict.mp4", source.fps, stage)
     character = as_it_looks(rig, colours, out / "ict.glb")
-    loops = {"ICT": _run_and_score(video, character, rig, landmarks, truth, out / "run", start, transfer)}
+    rest = rest_reading(rig, stage, out / "ict_rest.mp4")
+    loops = {"ICT": _run_and_score(video, character, rig, vertex_sets(rig, landmarks), truth, out / "run", start,
+                                   rest, transfer, floor=floor)}
     if second_head:
         start = time.perf_counter()
         other = caricature(rig, landmarks)
         character = as_it_looks(other, colours, out / "caricature.glb")
-        loops["caricature"] = _run_and_score(video, character, other, landmarks, truth, out / "run_caricature", start,
-                                             transfer)
+        rest = rest_reading(other, ict_stage(other, colours), out / "caricature_rest.mp4")
+        loops["caricature"] = _run_and_score(video, character, other, vertex_sets(other, landmarks), truth,
+                                             out / "run_caricature", start, rest, transfer,
+                                             track=load_track(out / "run" / "track.npz"), floor=floor)
     return loops
+
+
+RPM = SHARED.parent / "rpm"
+RPM_HEAD = "Wolf3D_Head"
+
+
+def rpm_loop(glb: Path, out: Path, *, performance: Path | None = None, floor: bool = False) -> dict[str, Loop]:
+    """The loop on a Ready Player Me avatar (``glb``: a skinned, textured full body, 52 ARKit targets).
+
+    The meshes with morph targets (head, eyes, teeth; in their bind pose, as the file stores
+    them) are rendered with their texture colours (sampled per vertex: :func:`keyshape.io.gltf.read_colours`),
+    the face framed, the head turned about its centre; the avatar's eyes turn by its own ``eyeLook*``
+    targets. ``run`` is handed the user's file itself. Scored on the head mesh's vertices that its
+    targets move (:func:`rpm_vertex_sets`). Returns ``{glb.stem: Loop}``.
+    """
+    from keyshape.io import load_rig, load_track
+    from keyshape.io.gltf import read_colours
+
+    start = time.perf_counter()
+    rig = load_rig(glb)
+    sets = rpm_vertex_sets(rig, head_vertices(glb))
+    source = load_track(performance) if performance else _demo_track(out)
+    truth = truth_from_scores(source.blendshapes, source.blendshape_names, rig.names)
+    rotations = head_rotations(source.head_matrix)
+    rgba = read_colours(glb)
+    faces = np.asarray(rig.faces)[rgba[rig.faces, 3].mean(axis=1) >= 0.5]
+    head = head_vertices(glb)
+    stage = Stage(faces, sets["face"], rig.vertices[head].mean(axis=0), rgba[:, :3])
+    video = render_video(rig, truth, rotations, out / f"{glb.stem}.mp4", source.fps, stage)
+    rest = rest_reading(rig, stage, out / f"{glb.stem}_rest.mp4")
+    return {glb.stem: _run_and_score(video, glb, rig, sets, truth, out / f"run_{glb.stem}", start, rest,
+                                     floor=floor)}
+
+
+def head_vertices(glb: Path) -> np.ndarray:
+    """The ids ``(n,)`` of the ``Wolf3D_Head`` mesh's vertices in :func:`keyshape.io.load_rig`'s rig of ``glb``."""
+    import pygltflib
+
+    from keyshape.io.gltf import read_meshes
+
+    document = pygltflib.GLTF2().load(str(glb))
+    _, parts = read_meshes(glb)
+    heads = [p for p in parts if document.meshes[p.mesh].name == RPM_HEAD]
+    if not heads:
+        raise SystemExit(f"{glb}: no {RPM_HEAD} mesh among those with morph targets")
+    return np.concatenate([np.arange(p.start, p.start + p.count) for p in heads])
+
+
+def rpm_vertex_sets(rig, head: np.ndarray, *, moved: float = 5e-4) -> dict:
+    """The face (the head vertices some target but ``tongueOut`` moves more than ``moved`` metres) and
+    its halves above and below the nose tip (the face's most forward vertex near the midline)."""
+    reach = np.linalg.norm(np.delete(rig.deltas, [i for i, n in enumerate(rig.names) if n == "tongueOut"], axis=0),
+                           axis=2).max(axis=0)
+    face = head[reach[head] > moved]
+    points = rig.vertices[face]
+    middle = face[np.abs(points[:, 0] - np.median(points[:, 0])) < 0.01]
+    nose_tip = rig.vertices[middle[np.argmax(rig.vertices[middle, 2])], 1]
+    upper = face[rig.vertices[face, 1] > nose_tip]
+    return {"face": face, "upper": upper, "lower": np.setdiff1d(face, upper)}
 
 
 def as_it_looks(rig, colours: np.ndarray, path: Path) -> Path:
@@ -295,34 +406,41 @@ def as_it_looks(rig, colours: np.ndarray, path: Path) -> Path:
     return write_glb(path, shown, Weights(np.zeros((0, rig.n_targets)), rig.names, 30.0), colours=colours)
 
 
-def _run_and_score(video: Path, rig_folder: Path, rig, landmarks, truth: np.ndarray, run: Path, start: float,
-                   transfer: bool = False) -> Loop:
+def _run_and_score(video: Path, rig_file: Path, rig, sets: dict, truth: np.ndarray, run: Path, start: float,
+                   rest: dict, transfer: bool = False, track=None, floor: bool = False) -> Loop:
     """``keyshape run VIDEO --rig RIG --auto-targets``, its result and the other routes scored on ``rig``
-    (the same run with ``--no-refine`` too, on its track)."""
+    (the same run with ``--no-refine`` too, on its track); ``rest``: MediaPipe's reading of the
+    character at rest (:func:`rest_reading`), ``sets``: the vertex sets scored; ``track``: the video's
+    track when it was made already (the same video on a second head)."""
     from keyshape.app import RunOptions, run_take
-    from keyshape.io import load_track, load_weights_csv
+    from keyshape.io import load_keys, load_track, load_weights_csv
     from keyshape.io.gltf import read_glb_animation
 
-    summary = run_take(video, run, RunOptions(rig=rig_folder, auto_targets=True, preview=False, extras=False),
-                       progress=False)
+    summary = run_take(video, run, RunOptions(rig=rig_file, auto_targets=True, floor=floor, preview=False,
+                                              extras=False), progress=False, track=track)
     tracked = load_track(run / "track.npz")
     key_weights = load_weights_csv(run / "weights.csv")
     written = read_glb_animation(run / "animation.glb")  # the keyshape animation, as a viewer plays it
+    table = arkit_to_rig(tracked.blendshape_names, rig.names)
+    scores = np.nan_to_num(tracked.blendshapes)
+    at_rest = np.array([rest.get(str(n), 0.0) for n in tracked.blendshape_names])
+    neutral = scores[load_keys(run / "keys.json").neutral_frame]
     estimates = {"keyshape": np.column_stack([written.weights[:, written.names.index(n)] for n in rig.names]),
-                 "mediapipe": np.nan_to_num(tracked.blendshapes) @ arkit_to_rig(tracked.blendshape_names,
-                                                                                rig.names).T}
+                 "mediapipe": scores @ table.T,
+                 "mediapipe less rest": np.clip(scores - at_rest, 0, 1) @ table.T,
+                 "mediapipe less neutral": np.clip(scores - neutral, 0, 1) @ table.T}
     # the same take without render and compare: the targets follow MediaPipe's scores alone
-    run_take(video, run.with_name(run.name + "_no_refine"), RunOptions(rig=rig_folder, auto_targets=True, refine=False,
-                                                                        preview=False, extras=False),
+    run_take(video, run.with_name(run.name + "_no_refine"), RunOptions(rig=rig_file, auto_targets=True, refine=False,
+                                                                        floor=floor, preview=False, extras=False),
              progress=False, track=tracked)
     plain = read_glb_animation(run.with_name(run.name + "_no_refine") / "animation.glb")
     estimates["keyshape, --no-refine"] = np.column_stack([plain.weights[:, plain.names.index(n)] for n in rig.names])
     estimates.update(oracles(key_weights.values, truth))
-    sets = vertex_sets(rig, landmarks)
     scores = {route: vertex_error(rig, truth, np.nan_to_num(e), sets) for route, e in estimates.items()}
     if transfer:
         scores.update(transfer_routes(rig, run, key_weights.values, truth, sets))
-    return Loop(scores, summary.detection_rate, summary.keys.n_keys, time.perf_counter() - start)
+    steps = (json.loads((run / "map.json").read_text()).get("refined") or {}).get("steps", {})
+    return Loop(scores, summary.detection_rate, summary.keys.n_keys, time.perf_counter() - start, steps)
 
 
 def transfer_routes(rig, run: Path, key_weights: np.ndarray, truth: np.ndarray, sets: dict) -> dict:
@@ -379,21 +497,31 @@ def _demo_track(out: Path):
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--family", choices=("ict", "rpm"), default="ict",
+                        help="the rig family: ICT-FaceKit and its caricature, or a Ready Player Me avatar")
     parser.add_argument("--ict", type=Path, default=SHARED / ARCHIVE, help="the ICT-FaceKit archive")
+    parser.add_argument("--rpm", type=Path, default=RPM / "RPM_Template_Mesh_XR.glb",
+                        help="the Ready Player Me avatar (--family rpm)")
     parser.add_argument("--performance", type=Path, default=None,
                         help="a track .npz with MediaPipe scores and head matrix (default: the embedded clip)")
     parser.add_argument("--out", type=Path, default=None, help="folder for the video and the run (default: temporary)")
     parser.add_argument("--json", type=Path, default=None, help="also write the scores here")
     parser.add_argument("--no-second-head", action="store_true", help="only ICT itself as the character")
+    parser.add_argument("--floor", action="store_true", help="the runs with run --floor (issue 35)")
     parser.add_argument("--transfer", action="store_true",
-                        help="also score the transfer route (each head with its shapes dropped)")
+                        help="also score the transfer route (each head with its shapes dropped; ICT only)")
     args = parser.parse_args(argv)
+    if args.family == "rpm" and args.transfer:
+        parser.error("--transfer runs on ICT only")
     with tempfile.TemporaryDirectory() as scratch:
         out = args.out or Path(scratch)
         out.mkdir(parents=True, exist_ok=True)
-        folder = extract_ict(args.ict, out / "ict")
-        loops = rendered_loop(folder, out, performance=args.performance, second_head=not args.no_second_head,
-                              transfer=args.transfer)
+        if args.family == "rpm":
+            loops = rpm_loop(args.rpm, out, performance=args.performance, floor=args.floor)
+        else:
+            folder = extract_ict(args.ict, out / "ict")
+            loops = rendered_loop(folder, out, performance=args.performance, second_head=not args.no_second_head,
+                                  transfer=args.transfer, floor=args.floor)
     print("| character | route | face area | upper | lower |")
     print("|---|---|---|---|---|")
     for character, loop in loops.items():
@@ -401,7 +529,7 @@ def main(argv=None) -> None:
             print(f"| {character} | {route} | {s['face']:.1f} % | {s['upper']:.1f} % | {s['lower']:.1f} % |")
     for character, loop in loops.items():
         print(f"{character}: face found in {100 * loop.detection_rate:.1f} % of the frames; {loop.n_keys} keys; "
-              f"{loop.seconds:.0f} s")
+              f"{loop.seconds:.0f} s; steps kept {loop.steps}")
     if args.json:
         args.json.write_text(json.dumps({c: loop.scores for c, loop in loops.items()}, indent=1))
 

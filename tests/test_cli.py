@@ -272,7 +272,7 @@ def test_run_auto_targets_onto_a_human_like_rig(demo_clip, demo_out, tmp_path):
     np.testing.assert_allclose(second.matrix, first.matrix, atol=1e-4)
 
 
-@pytest.mark.parametrize("option", [("--correspondence", "c.json"), ("--no-refine",)])
+@pytest.mark.parametrize("option", [("--correspondence", "c.json"), ("--no-refine",), ("--floor",)])
 def test_run_correspondence_needs_auto_targets(demo_clip, tmp_path, option):
     given = [tmp_path / o if o.endswith(".json") else o for o in option]
     result = _cli("run", demo_clip, *given, "-o", tmp_path / "o")

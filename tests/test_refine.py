@@ -212,3 +212,18 @@ def test_the_report_reads_what_render_and_compare_did(tmp_path):
     assert "jawOpen" in note and "1.21 px → 1.05 px" in note
     path.write_text('{"refined": {"targets": [], "skipped": "no head pose"}}')
     assert "skipped (no head pose)" in _refinement_note(_refinement(path))
+
+
+def test_judge_steps_picks_the_candidate_the_landmarks_show():
+    from keyshape.targets._refine import judge_steps
+
+    rng = np.random.default_rng(4)
+    video, base, raised, route, truth = _scene(rng)
+    wrong = route + rng.permutation(truth)  # the right amount of motion, at the wrong frames
+    candidates = np.stack([wrong, route + truth, route])  # (3, n_frames, n_targets)
+    np.testing.assert_array_equal(judge_steps(video, base, raised, route, candidates), [1, 1, 1])
+    # without the right one, the route (no change) explains more than motion at the wrong frames
+    np.testing.assert_array_equal(judge_steps(video, base, raised, route, candidates[[0, 2]]), [1, 1, 1])
+    held = candidates.copy()
+    held[:, :, :] = np.nan  # no frame to judge on: the route as it is
+    np.testing.assert_array_equal(judge_steps(video, base, raised, route, held), [1, 1, 1])

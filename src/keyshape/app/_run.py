@@ -60,6 +60,7 @@ class RunOptions:
     meshes: tuple | None = None  # auto_targets, glTF rig: the meshes to read (default: morph meshes, else the head's)
     normalize: bool = False  # auto_targets, mapping route: each target driven fully by its best key
     refine: bool = True  # auto_targets, score mapping: refine the targets the scores barely see (render and compare)
+    floor: bool = False  # auto_targets, score mapping: start from the scores less the rest reading (issue 35)
     preview: bool = True
     extras: bool = True
     formats: tuple[str, ...] = ()  # the animation also as animation.<suffix>: "fbx", "blend", "usd"
@@ -116,8 +117,9 @@ def _refined(auto, options: RunOptions, track: Track, weights, progress: bool):
     """The score mapping with the targets the scores barely see refined on the landmarks
     (:func:`keyshape.targets.refine_mapping`: render and compare); None when the rig has none of them."""
     import warnings
+    from dataclasses import replace
 
-    from ..targets import refinable_targets, refine_mapping
+    from ..targets import key_targets, refinable_targets, refine_mapping, with_floor
 
     if not refinable_targets(auto.rig.names):  # not an ARKit rig: nothing to refine, nothing to say
         return None
@@ -129,12 +131,35 @@ def _refined(auto, options: RunOptions, track: Track, weights, progress: bool):
         from ..io.gltf import read_colours
 
         colours = read_colours(options.rig)  # rendered as it looks, as for the correspondence
-    refinement = refine_mapping(auto.mapping, auto.rig, auto.correspondence, track, weights, colours=colours,
-                                progress=progress)
+    floor = _floor(auto, options, track)
+    mapping = auto.mapping
+    if floor:  # rendered as it will be driven: the floor but on the targets judged and the key targets
+        mapping = with_floor(mapping, floor, {*key_targets(auto.rig.names), *refinable_targets(auto.rig.names)})
+    refinement = refine_mapping(mapping, auto.rig, auto.correspondence, track, weights, colours=colours,
+                                progress=progress, floor=floor or None)
     if refinement.reason:
         warnings.warn(f"render and compare skipped: {refinement.reason}; the targets follow the scores",
                       stacklevel=2)
+        if floor:
+            refinement = replace(refinement, mapping=with_floor(auto.mapping, floor, key_targets(auto.rig.names)))
     return refinement
+
+
+def _floor(auto, options: RunOptions, track: Track) -> tuple:
+    """The floor's score channels (:func:`keyshape.targets.score_floor`), or () (``--no-floor``, no scores)."""
+    from ..targets import score_floor
+
+    if not options.floor or track.blendshapes is None or not track.blendshape_names:
+        return ()
+    exclude = ()
+    if options.rig is not None and Path(options.rig).suffix.lower() in (".glb", ".gltf"):
+        from ..io.gltf import eye_nodes
+        from ..targets import GAZE_TARGETS
+
+        if eye_nodes(options.rig) is not None:
+            exclude = GAZE_TARGETS  # its eyes turn by their nodes, with the irises' gaze: not twice
+    return score_floor(auto.rig.names, track.blendshape_names, rest=auto.correspondence.rest_scores,
+                       exclude=exclude)
 
 
 def _refined_note(refinement) -> dict | None:
@@ -144,7 +169,10 @@ def _refined_note(refinement) -> dict | None:
     if not refinement.targets:
         return {"targets": [], "skipped": refinement.reason}
     before, after = refinement.residual_px
-    return {"targets": list(refinement.targets), "residual_px": [round(before, 3), round(after, 3)]}
+    note = {"targets": list(refinement.targets), "residual_px": [round(before, 3), round(after, 3)]}
+    if refinement.steps:
+        note["steps"] = dict(refinement.steps)
+    return note
 
 
 def with_mirrored_targets(rig: Rig, keys: KeyShapes) -> Rig:
@@ -352,6 +380,10 @@ def _run_take(video: str | Path, outdir: str | Path, options: RunOptions, *, pro
     if auto is not None and auto.route == "mapping" and options.refine and auto.correspondence is not None:
         refinement = _refined(auto, options, track, solved.weights, progress)
         mapping = refinement.mapping if refinement is not None else mapping
+    elif auto is not None and auto.route == "mapping" and _floor(auto, options, track):
+        from ..targets import key_targets, with_floor
+
+        mapping = with_floor(mapping, _floor(auto, options, track), key_targets(auto.rig.names))
     from ..io.take import record_written, written_by
 
     earlier = written_by(outdir)  # what an earlier run wrote here: the stale ones go, nothing else

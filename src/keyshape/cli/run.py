@@ -63,6 +63,11 @@ def add_arguments(p) -> None:
                         "as driven, tracked again, and the jaw, lower lip, squint, outer brow and pucker targets "
                         "refined on the landmarks; one more tracking pass per target, about 9). Faster, "
                         "and those targets follow MediaPipe's scores alone")
+    p.add_argument("--floor", action="store_true",
+                   help="with --auto-targets on an ARKit rig: start from MediaPipe's own scores less the "
+                        "character's rest reading on every target, and keep the key route or its refinement "
+                        "only where render and compare shows it explains the video better (map.json's refined "
+                        "steps say which). Measured, not yet the default (BENCHMARKS.md, issue 35)")
     add_capture_options(p)
     add_visibility_option(p)
     p.add_argument("-o", "--output", type=Path, default=None, metavar="OUTDIR",
@@ -88,8 +93,9 @@ def add_format_option(p) -> None:
 def check(parser, args) -> None:
     """Usage errors argparse cannot see (exit code 2); fills in the default output folder."""
     if not args.auto_targets and (args.correspondence or args.normalize or args.front != "auto" or not args.refine
-                                  or args.mesh):
-        parser.error("--correspondence, --front, --normalize, --no-refine and --mesh only apply with --auto-targets")
+                                  or args.mesh or args.floor):
+        parser.error("--correspondence, --front, --normalize, --no-refine, --mesh and --floor only apply with "
+                     "--auto-targets")
     if is_track_file(args.video):
         parser.error(track_file_message(args.video))
     if args.output is None:
@@ -123,7 +129,8 @@ def run(args) -> None:
                          mirror=args.mirror, neutral=args.neutral, auto_targets=args.auto_targets,
                          correspondence=args.correspondence, front=args.front, normalize=args.normalize,
                          meshes=None if args.mesh is None else tuple(mesh_choice(args.mesh)),
-                         refine=args.refine, capture=capture_kwargs(args), preview=not args.no_preview,
+                         refine=args.refine, floor=args.floor, capture=capture_kwargs(args),
+                         preview=not args.no_preview,
                          formats=tuple(args.formats),
                          **solve_kwargs(args))
     with stage_lines(args):

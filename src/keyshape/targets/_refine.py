@@ -48,7 +48,7 @@ References
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -85,12 +85,16 @@ class Refinement:
         fit through the keys; NaN when nothing was refined.
     reason : str
         Why nothing was refined ("" when something was).
+    steps : dict str -> str
+        With a floor (:func:`refine_mapping`'s ``floor``): which step each refined target keeps,
+        ``"floor"`` (its score less the rest reading), ``"keys"`` (the route's row) or ``"refined"``.
     """
 
     mapping: Mapping
     targets: tuple[str, ...] = ()
     residual_px: tuple[float, float] = (float("nan"), float("nan"))
     reason: str = ""
+    steps: dict = field(default_factory=dict)
 
 
 def refinable_targets(rig_names) -> dict[str, int]:
@@ -287,7 +291,8 @@ def fit_through_keys(refined: np.ndarray, key_weights: np.ndarray, *, ridge: flo
 
 def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, track: Track, weights: Weights, *,
                    colours: np.ndarray | None = None, delta: float = 0.2, ridge: float = 1.0, smooth: float = 3.0,
-                   blend: float = 0.5, size: int = 512, progress: bool = True) -> Refinement:
+                   blend: float = 0.5, size: int = 512, progress: bool = True, floor: tuple | None = None
+                   ) -> Refinement:
     """The mapping with :data:`REFINED_SCORES`' targets refined by render and compare (module docstring).
 
     Parameters
@@ -318,6 +323,11 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
     size : int, keyword-only
         Side of the renders, pixels.
     progress : bool, keyword-only
+    floor : tuple of (target, score, rest) or None, keyword-only
+        The floor's score channels (:func:`keyshape.targets._floor.score_floor`). Given, each
+        refined target keeps the step that best explains the video's landmarks on frames its
+        rows were not fitted on (:func:`judge_steps`): the floor (its channel), the route's row, or
+        the refined row; ``Refinement.steps`` says which.
 
     Returns
     -------
@@ -363,7 +373,108 @@ def refine_mapping(mapping: Mapping, rig: Rig, correspondence: Correspondence, t
     rows = [mapping.targets.index(name) for name in found]
     matrix[rows], offsets[rows] = gains, offset
     refined_mapping = replace(mapping, matrix=matrix, offset=offsets)
-    return Refinement(refined_mapping, tuple(found), rms)
+    if floor is None:
+        return Refinement(refined_mapping, tuple(found), rms)
+    channels = {t: (t, score, rest) for t, score, rest in floor}
+    names = track.blendshape_names or ()
+    scores = np.nan_to_num(np.asarray(track.blendshapes, float)) if track.blendshapes is not None else None
+    floored = np.column_stack([
+        np.clip(scores[:, list(names).index(channels[n][1])] - channels[n][2], 0, 1)
+        if scores is not None and n in channels and channels[n][1] in names else route[:, t]
+        for n, t in found.items()])
+    crossed = _cross_fitted(track.points[..., :2], base, raised, route[:, indices], corrections,
+                            weights.values[:, columns], delta=delta, smooth=smooth, blend=blend)
+    candidates = np.stack([floored, route[:, indices], crossed])  # (3, n_frames, n)
+    best = judge_steps(track.points[..., :2], base, raised, route[:, indices], candidates, delta=delta,
+                       stable=stable_points(478))
+    steps = {name: STEPS[int(b)] for name, b in zip(found, best)}
+    for name, step in steps.items():
+        if step != "refined":
+            r = mapping.targets.index(name)
+            matrix[r], offsets[r] = mapping.matrix[r], mapping.offset[r]
+    gaze = [g for g in mapping.gaze if g[0] not in found] + \
+        [channels[n] for n, step in steps.items() if step == "floor" and n in channels]
+    for name, step in steps.items():
+        if step == "floor" and name in channels:
+            r = mapping.targets.index(name)
+            matrix[r], offsets[r] = 0.0, 0.0
+    chosen = replace(mapping, matrix=matrix, offset=offsets,
+                     gaze=tuple(g for t in mapping.targets for g in gaze if g[0] == t))
+    return Refinement(chosen, tuple(found), rms, steps=steps)
+
+
+STEPS = ("floor", "keys", "refined")
+
+
+def _cross_fitted(video, base, raised, route, corrections, key_weights, *, delta: float, smooth: float, blend: float,
+                  block: int = 30) -> np.ndarray:
+    """The refined weights ``(n_frames, n)`` of each frame from rows fitted on the other half of the take
+    (blocks of ``block`` frames, alternating): what the refinement predicts where it was not fitted."""
+    from ..schemes import stable_points
+
+    n_frames = len(route)
+    fold = (np.arange(n_frames) // block) % 2
+    out = np.full(route.shape, np.nan)
+    W = np.nan_to_num(np.asarray(key_weights, float))
+    X = np.column_stack([np.ones(n_frames), W])
+    for held in (0, 1):
+        fit = fold != held
+        refined = np.where(fit[:, None], route + corrections, np.nan)
+        seen = np.isfinite(refined).all(axis=1)
+        if seen.sum() < 2 * (W.shape[1] + 1):
+            return route.copy()
+        if smooth:
+            refined = _smooth_seen(refined, seen, smooth)
+        per_frame = fit_through_keys(refined, W)
+        masked = np.where(fit[:, None, None], np.asarray(video, float), np.nan)
+        at_once = fit_in_landmarks(masked, base, raised, route, W, delta=delta, stable=stable_points(478))
+        offset = blend * at_once[0] + (1 - blend) * per_frame[0]
+        gains = blend * at_once[1] + (1 - blend) * per_frame[1]
+        out[~fit] = np.clip(X[~fit] @ np.column_stack([offset, gains]).T, 0, 1)
+    return out
+
+
+def judge_steps(video, base, raised, route: np.ndarray, candidates: np.ndarray, *, delta: float = 0.2,
+                stable=None) -> np.ndarray:
+    r"""Which candidate weights of each target best explain the video's landmarks: ``(n,)`` int.
+
+    Linearised at the rendered route ``P``: candidate ``X`` of target ``j`` leaves the residual
+    ``Π_t (r̃(t) − J_j(t) d(t) + \overline{J_j d})`` per frame, ``d = X_j − P_j``, the head's small
+    moves projected off (``Π_t``) and the take mean of the change removed (as the residual's take
+    median is: the landmarks do not judge a target's mean level, the two faces' proportions do
+    that). The candidate with the least summed squared residual wins.
+
+    Parameters
+    ----------
+    video, base, raised, route
+        As :func:`solve_corrections`.
+    candidates : (n_candidates, n_frames, n) float
+        Each target's candidate weights per frame (NaN: the frame left out).
+
+    Returns
+    -------
+    (n,) int
+        The index of the best candidate per target (the first on a tie).
+    """
+    route = np.asarray(route, float)
+    n = route.shape[1]
+    systems = _frame_systems(video, base, raised, route, delta=delta, stable=stable)
+    frames = [f for f, *_ in systems]
+    ok = np.isfinite(candidates[:, frames]).all(axis=(0, 2))
+    systems = [s for s, good in zip(systems, ok) if good]
+    if not systems:
+        return np.ones(n, dtype=int)  # no evidence: the route as it is
+    projected = []
+    for f, jacobian, head, residual in systems:
+        basis, _ = np.linalg.qr(head)
+        projected.append((f, jacobian - basis @ (basis.T @ jacobian), residual - basis @ (basis.T @ residual)))
+    cost = np.zeros((len(candidates), n))
+    for j in range(n):
+        for c, candidate in enumerate(candidates):
+            change = np.stack([J[:, j] * (candidate[f, j] - route[f, j]) for f, J, _ in projected])
+            change -= change.mean(axis=0)
+            cost[c, j] = sum(float(((r - d) ** 2).sum()) for (_, _, r), d in zip(projected, change))
+    return np.argmin(cost, axis=0)
 
 
 def _smooth_seen(values: np.ndarray, seen: np.ndarray, sigma: float) -> np.ndarray:
