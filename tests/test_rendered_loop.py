@@ -49,8 +49,10 @@ def test_rendered_loop(tmp_path):
         # and 9.9 % (signed + constant). On the caricature: 17.8 / 29 / 14 (22.5 without), MediaPipe 34 / 78 / 18
         assert scores["keyshape"]["face"] < 20 and scores["keyshape"]["lower"] < 16
         assert scores["keyshape"]["face"] < 0.58 * scores["mediapipe"]["face"]
-        # render and compare (the targets the scores miss, refined on the landmarks) gains on both heads
-        assert scores["keyshape"]["face"] < scores["keyshape, --no-refine"]["face"] - 3
+        # render and compare (the targets the scores miss, refined on the landmarks) gains on both heads;
+        # since its gains are kept >= 0 (5f13446) it gains 2.7 points on ICT's face (19.6 against 22.3,
+        # measured 2026-12-07 and again with the floor's branch), 4.7 before
+        assert scores["keyshape"]["face"] < scores["keyshape, --no-refine"]["face"] - 2
         assert scores["keyshape"]["upper"] < scores["keyshape, --no-refine"]["upper"] - 3
         assert scores["oracle (signed + constant)"]["face"] < 15
         assert scores["mediapipe"]["face"] < 45
