@@ -151,19 +151,6 @@ def test_the_teeth_stay_behind_the_lips_when_the_whole_mouth_moves(head, mouth_k
         assert below.sum() == 0, (name, int(below.sum()), len(rows))
 
 
-def test_the_upper_teeth_show_as_a_solid_row_with_the_jaw_open(head, mouth_keys):
-    """Across the middle of the upper row, every pixel column of the opening shows a tooth (the
-    cavity does not stand in front of them) but the narrow gaps between the teeth."""
-    rig = default_character(mouth_keys)
-    seen, points = _parts_seen(head, rig.pose(np.eye(rig.n_targets)[[rig.names.index("jaw")]])[0])
-    columns = np.nonzero((seen == 2).any(axis=0))[0]
-    upper = head.rig.vertices[head.parts["upper_teeth"]]
-    left, right = points[list(UPPER_INNER_LIP)][[0, -1], 0]
-    width = np.ptp(upper[:, 0]) / np.ptp(head.rig.vertices[head.landmark_vertices[[78, 308]], 0]) * (right - left)
-    middle = np.arange(int((left + right) / 2 - 0.35 * width), int((left + right) / 2 + 0.35 * width))
-    assert len(middle) > 20 and np.isin(middle, columns).mean() > 0.8, np.isin(middle, columns).mean()
-
-
 def test_the_head_is_coloured_and_symmetric(head):
     from keyshape.mesh import mirror_map
 

@@ -6,7 +6,7 @@
   (``eyeLookInLeft`` ... ``eyeLookDownRight``), each a rotation of ``GAZE_DEGREES``
   (:func:`gaze_deltas`); :func:`gaze_weights` turns the tracker's yaw and pitch into them.
 * **Mouth interior** (:func:`mouth_parts`): a dark cavity behind the lips (its triangles face
-  inward, its front flattened behind the teeth), a row of upper teeth, a row of lower teeth and a
+  inward), a row of upper teeth, a row of lower teeth and a
   tongue. At rest the closed lips hide them; the lower teeth, the tongue and the cavity's floor
   follow the jaw (:func:`jaw_deltas`: the rigid motion, Umeyama 1991, of the chin and lower-lip
   landmarks), the upper teeth and the cavity's roof the upper lip.
@@ -146,10 +146,8 @@ def mouth_parts(inner_lip: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray
 
     cavity = _ellipsoid(np.array([0.0, mid_y - 0.004, front - 0.022]), (0.9 * half_width, 0.017, 0.02),
                         CAVITY, inward=True)
-    # the cavity's front flattened behind the teeth (its dome would stand in front of them, leaving
-    # only their corners showing, fang-like): at most _TEETH_CLEARANCE behind the teeth rows' backs
-    cavity[0][:, 2] = np.minimum(cavity[0][:, 2], arc_z(cavity[0][:, 0]) - _LOWER_BACK - _TOOTH_DEPTH
-                                 - _TEETH_CLEARANCE)
+    # (flattening the cavity's front behind the teeth shows them whole with the jaw open, but also
+    # at rest through the lips' gap, which moved MediaPipe's lips on the front render: not done)
     parts = {
         "cavity": cavity,
         "upper_teeth": _teeth(arc_z, 0.62 * half_width, mid_y - 0.0015, mid_y + 0.0075, 0.0),
@@ -162,7 +160,6 @@ def mouth_parts(inner_lip: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray
 
 _TOOTH_DEPTH = 0.0028  # front to back of a tooth (m)
 _LOWER_BACK = 0.0016  # the lower row sits this far behind the upper
-_TEETH_CLEARANCE = 0.001
 
 
 def _teeth(arc_z, half_width: float, bottom: float, top: float, back: float, *, n: int = 8):
