@@ -149,6 +149,6 @@ def test_the_readme_says_where_setup_installs_and_offers_the_light_install():
     flat = " ".join(TEXT.split("\n## ", 1)[0].split())  # before the first section
     assert "`setup.sh` installs into the first `python` on your `PATH`" in flat
     assert "| `pip install -e .` |" in flat
-    extras = re.findall(r'`pip install -e "\.\[(\w+)\]"` \| \S', flat)
+    extras = re.findall(r'`pip install -e "\.\[([\w-]+)\]"` \| \S', flat)
     declared = tomllib.loads((README.parent / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     assert sorted(extras) == sorted(declared)  # each extra, and what it adds
